@@ -1,0 +1,130 @@
+"""Input checks shared by the public API.
+
+Every check raises ``TypeError`` (wrong kind of object or dtype) or
+``ValueError`` (wrong shape or value) with a message that names the argument,
+what was expected, and what was given. None of them uses ``assert``.
+"""
+
+from __future__ import annotations
+
+import numbers
+
+import numpy as np
+
+#: Tolerance for ``R`` being a rotation: ``|R^T R - I|`` and ``|det R - 1|``.
+ROTATION_ATOL = 1e-6
+
+
+def _shape_str(shape) -> str:
+    return "(" + ", ".join("N" if s is None else str(s) for s in shape) + ")"
+
+
+def as_array(x, name: str, shape: tuple, *, dtype=np.float64, finite: bool = True) -> np.ndarray:
+    """Return ``x`` as a contiguous array of ``dtype`` with the given shape.
+
+    ``None`` in ``shape`` matches any length. Raises ``TypeError`` when ``x``
+    is not numeric and ``ValueError`` for a wrong shape or a non-finite value.
+    """
+    if isinstance(x, (str, bytes)) or x is None:
+        raise TypeError(f"{name} must be a numeric array of shape {_shape_str(shape)}, got {type(x).__name__}")
+    try:
+        arr = np.asarray(x)
+    except (ValueError, TypeError) as exc:  # ragged input
+        raise ValueError(f"{name} must be a numeric array of shape {_shape_str(shape)}: {exc}") from None
+    if arr.dtype == object or not (np.issubdtype(arr.dtype, np.number) or arr.dtype == bool):
+        raise TypeError(f"{name} must be a numeric array of shape {_shape_str(shape)}, got dtype {arr.dtype}")
+    if np.iscomplexobj(arr):
+        raise TypeError(f"{name} must be real, got dtype {arr.dtype}")
+    if arr.ndim != len(shape) or any(s is not None and s != a for s, a in zip(shape, arr.shape)):
+        raise ValueError(f"{name} must have shape {_shape_str(shape)}, got shape {arr.shape}")
+    arr = np.ascontiguousarray(arr, dtype=dtype)
+    if finite and arr.size and not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} must be finite, got NaN or inf")
+    return arr
+
+
+def as_points(x, name: str) -> np.ndarray:
+    """``(N, 2)`` finite float64 pixel coordinates. An empty list gives ``(0, 2)``."""
+    if isinstance(x, (list, tuple)) and len(x) == 0:
+        return np.zeros((0, 2))
+    return as_array(x, name, (None, 2))
+
+
+def as_camera_matrix(K, name: str) -> np.ndarray:
+    """Check an intrinsic matrix: finite ``(3, 3)``, upper triangular, last row ``[0, 0, 1]``, invertible."""
+    K = as_array(K, name, (3, 3))
+    if K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or K[2, 2] != 1:
+        raise ValueError(f"{name} must be upper triangular with last row [0, 0, 1], got\n{K}")
+    if K[0, 0] == 0 or K[1, 1] == 0 or not np.isfinite(np.linalg.cond(K)) or np.linalg.cond(K) > 1e12:
+        raise ValueError(f"{name} must be invertible (non-zero focal lengths), got\n{K}")
+    return K
+
+
+def as_rotation(R, name: str) -> np.ndarray:
+    """Check a rotation matrix: orthonormal with determinant +1, within :data:`ROTATION_ATOL`."""
+    R = as_array(R, name, (3, 3))
+    err = np.abs(R.T @ R - np.eye(3)).max()
+    if err > ROTATION_ATOL:
+        raise ValueError(f"{name} must be a rotation matrix (R.T @ R = I within {ROTATION_ATOL}), got error {err:.3g}")
+    det = np.linalg.det(R)
+    if abs(det - 1.0) > ROTATION_ATOL:
+        raise ValueError(f"{name} must be a rotation matrix with det +1, got det {det:.6g}")
+    return R
+
+
+def as_vector3(t, name: str) -> np.ndarray:
+    """A finite 3-vector; ``(3,)``, ``(3, 1)`` and ``(1, 3)`` are accepted."""
+    arr = np.asarray(t) if not isinstance(t, (str, bytes)) and t is not None else t
+    if isinstance(arr, np.ndarray) and arr.size == 3 and arr.ndim <= 2:
+        arr = arr.reshape(3)
+    return as_array(arr, name, (3,))
+
+
+def as_image_size(size, name: str) -> tuple[int, int]:
+    """``(width, height)`` as two positive integers."""
+    if isinstance(size, (str, bytes)) or size is None or not hasattr(size, "__len__") or len(size) != 2:
+        raise ValueError(f"{name} must be (width, height) in pixels, got {size!r}")
+    out = []
+    for v in size:
+        if isinstance(v, (bool, np.bool_)) or not isinstance(v, numbers.Real):
+            raise TypeError(f"{name} must hold two numbers (width, height), got {size!r}")
+        if not np.isfinite(v) or v != int(v) or v <= 0:
+            raise ValueError(f"{name} must be two positive integers (width, height), got {size!r}")
+        out.append(int(v))
+    return out[0], out[1]
+
+
+def as_nonnegative(x, name: str) -> float:
+    """A finite scalar ``>= 0``."""
+    if isinstance(x, (bool, np.bool_)) or not isinstance(x, numbers.Real):
+        raise TypeError(f"{name} must be a real number, got {type(x).__name__}")
+    if not np.isfinite(x) or x < 0:
+        raise ValueError(f"{name} must be a finite number >= 0, got {x!r}")
+    return float(x)
+
+
+def as_depth_range(depth_range, n: int, name: str = "depth_range") -> tuple[np.ndarray, np.ndarray]:
+    """``(zmin, zmax)`` as two float arrays broadcastable to ``(n,)``.
+
+    Each bound is a scalar or an ``(n,)`` array. Requires ``0 <= zmin < zmax``;
+    ``zmax`` may be ``inf``; NaN is refused.
+    """
+    if isinstance(depth_range, (str, bytes)) or not hasattr(depth_range, "__len__") or len(depth_range) != 2:
+        raise ValueError(f"{name} must be a pair (zmin, zmax), got {depth_range!r}")
+    bounds = []
+    for label, v in zip(("zmin", "zmax"), depth_range):
+        arr = np.asarray(v)
+        if arr.dtype == object or not (np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)):
+            raise TypeError(f"{name} {label} must be a number or an (N,) array, got {type(v).__name__}")
+        if arr.ndim > 1 or (arr.ndim == 1 and arr.shape[0] != n):
+            raise ValueError(f"{name} {label} must be a scalar or have shape ({n},), got shape {arr.shape}")
+        arr = arr.astype(np.float64)
+        if np.isnan(arr).any():
+            raise ValueError(f"{name} {label} must not be NaN")
+        bounds.append(arr)
+    zmin, zmax = bounds
+    if np.any(zmin < 0) or np.any(np.isinf(zmin)):
+        raise ValueError(f"{name} zmin must be finite and >= 0, got {depth_range[0]!r}")
+    if np.any(zmin >= zmax):
+        raise ValueError(f"{name} must have zmin < zmax, got {depth_range!r}")
+    return zmin, zmax
