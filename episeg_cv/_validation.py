@@ -74,7 +74,12 @@ def as_rotation(R, name: str) -> np.ndarray:
 
 def as_vector3(t, name: str) -> np.ndarray:
     """A finite 3-vector; ``(3,)``, ``(3, 1)`` and ``(1, 3)`` are accepted."""
-    arr = np.asarray(t) if not isinstance(t, (str, bytes)) and t is not None else t
+    arr = t
+    if not isinstance(t, (str, bytes)) and t is not None:
+        try:
+            arr = np.asarray(t)
+        except (ValueError, TypeError) as exc:  # ragged input
+            raise ValueError(f"{name} must be a numeric array of shape (3,): {exc}") from None
     if isinstance(arr, np.ndarray) and arr.size == 3 and arr.ndim <= 2:
         arr = arr.reshape(3)
     return as_array(arr, name, (3,))
@@ -103,11 +108,11 @@ def as_nonnegative(x, name: str) -> float:
     return float(x)
 
 
-def as_depth_range(depth_range, n: int, name: str = "depth_range") -> tuple[np.ndarray, np.ndarray]:
+def as_depth_range(depth_range, n: int | None, name: str = "depth_range") -> tuple[np.ndarray, np.ndarray]:
     """``(zmin, zmax)`` as two float arrays broadcastable to ``(n,)``.
 
-    Each bound is a scalar or an ``(n,)`` array. Requires ``0 <= zmin < zmax``;
-    ``zmax`` may be ``inf``; NaN is refused.
+    Each bound is a scalar or an ``(n,)`` array (any common length when ``n``
+    is None). Requires ``0 <= zmin < zmax``; ``zmax`` may be ``inf``; NaN is refused.
     """
     if isinstance(depth_range, (str, bytes)) or not hasattr(depth_range, "__len__") or len(depth_range) != 2:
         raise ValueError(f"{name} must be a pair (zmin, zmax), got {depth_range!r}")
@@ -116,6 +121,8 @@ def as_depth_range(depth_range, n: int, name: str = "depth_range") -> tuple[np.n
         arr = np.asarray(v)
         if arr.dtype == object or not (np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)):
             raise TypeError(f"{name} {label} must be a number or an (N,) array, got {type(v).__name__}")
+        if arr.ndim == 1 and n is None:
+            n = arr.shape[0]
         if arr.ndim > 1 or (arr.ndim == 1 and arr.shape[0] != n):
             raise ValueError(f"{name} {label} must be a scalar or have shape ({n},), got shape {arr.shape}")
         arr = arr.astype(np.float64)

@@ -1,0 +1,281 @@
+"""Candidate search: which keypoints of image 2 lie near each query's segment (or line).
+
+No ``N1 x N2`` array is formed. All epipolar lines of image 2 pass through the
+epipole, so they form a *pencil*; each line has a pencil angle ``phi``. The
+index works in two stages:
+
+1. **Pencil buckets.** Queries are sorted by ``phi`` and cut into buckets of
+   about equal size. A keypoint ``y`` of image 2 can only be within ``tol`` of
+   lines whose ``phi`` lies in a small interval (the lines through the
+   epipole that touch the disk of radius ``tol`` around ``y``); it is put in
+   every bucket that interval overlaps.
+2. **Blocks along the lines.** Inside a bucket, positions along the lines are
+   measured by ``rho``, the projection on the bucket's mean line direction.
+   Projection is 1-Lipschitz, so a point within ``tol`` of a segment has
+   ``rho`` within ``tol`` of the segment's ``rho`` interval. Queries are
+   grouped by their interval, and each group gets one contiguous slice of the
+   bucket's keypoints sorted by ``rho``.
+
+Each block, ``(queries, keypoints)``, is small and dense, which suits BLAS for
+the descriptor distances. The exact geometric test, distance to the segment
+(or line) at most ``tol``, is then applied inside the block by :meth:`mask`.
+The line and the segment use the same index; the segment's shorter ``rho``
+intervals give smaller blocks. The pencil angle is built from an orthonormal
+basis of the lines through the (unit) homogeneous epipole, so an epipole at
+infinity (``t_3 = 0``) or very far needs no special case. For pure rotation
+(``t = 0``) there is no pencil; every segment is a point and the index falls
+back to one bucket with ``rho`` along ``x``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ._validation import as_nonnegative, as_points
+from .geometry import EpipolarSegments, TwoViewGeometry
+
+__all__ = ["CandidateIndex", "CONSTRAINTS"]
+
+#: The known constraints. ``"none"`` is handled by the matcher, not here.
+CONSTRAINTS = ("segment", "line", "none")
+
+
+def check_constraint(constraint) -> str:
+    if not isinstance(constraint, str) or constraint not in CONSTRAINTS:
+        raise ValueError(f"constraint must be one of {CONSTRAINTS}, got {constraint!r}")
+    return constraint
+
+
+@dataclass(frozen=True)
+class Block:
+    """A group of queries and the keypoints of image 2 they must be compared with."""
+
+    queries: np.ndarray  # (g,) intp indices into points1
+    train: np.ndarray  # (m,) intp indices into points2
+
+
+class CandidateIndex:
+    """Spatial index of the keypoints of image 2 for the segments (or lines) of image-1 queries.
+
+    Parameters
+    ----------
+    geometry : TwoViewGeometry
+        Known pose; ``X2 = R @ X1 + t``.
+    points1 : (N1, 2) array_like
+        Query pixels in image 1.
+    points2 : (N2, 2) array_like
+        Keypoint pixels in image 2.
+    tol : float, optional
+        Pixel tolerance: a candidate is within ``tol`` of the segment (or line).
+    depth_range : (zmin, zmax), optional
+        Passed to :meth:`TwoViewGeometry.segments` (ignored by ``"line"``).
+    constraint : {"segment", "line"}
+        Which region the candidates must lie in.
+    group_size : int, optional
+        Queries per block. Larger blocks mean fewer Python steps but more
+        wasted pairs.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from episeg_cv import TwoViewGeometry
+    >>> K = [[100, 0, 50], [0, 100, 50], [0, 0, 1]]
+    >>> g = TwoViewGeometry(K, K, np.eye(3), [-1, 0, 0], image_size1=(100, 100), image_size2=(100, 100))
+    >>> p1 = [[50.0, 50.0]]                           # segment: the row y = 50, left of x = 50
+    >>> p2 = [[30.0, 50.5], [70.0, 50.0], [30.0, 60.0]]
+    >>> CandidateIndex(g, p1, p2, tol=2.0).pairs().tolist()
+    [[0, 0]]
+    >>> CandidateIndex(g, p1, p2, tol=2.0, constraint="line").pairs().tolist()
+    [[0, 0], [0, 1]]
+    """
+
+    def __init__(self, geometry: TwoViewGeometry, points1, points2, *, tol: float = 2.0,
+                 depth_range=(0.0, np.inf), constraint: str = "segment", group_size: int = 32):
+        if not isinstance(geometry, TwoViewGeometry):
+            raise TypeError(f"geometry must be a TwoViewGeometry, got {type(geometry).__name__}")
+        constraint = check_constraint(constraint)
+        if constraint == "none":
+            raise ValueError("CandidateIndex needs constraint 'segment' or 'line'; 'none' has no index")
+        self.geometry = geometry
+        self.points1 = as_points(points1, "points1")
+        self.points2 = as_points(points2, "points2")
+        self.tol = as_nonnegative(tol, "tol")
+        self.constraint = constraint
+        #: The segments of the queries, clipped to image 2 grown by ``tol``.
+        self.segments: EpipolarSegments = geometry.segments(self.points1, depth_range, margin=self.tol)
+        seg = self.segments
+        if constraint == "segment":
+            self._P, self._Q, self._ok = seg.start, seg.end, seg.valid.copy()
+        else:
+            self._P, self._Q = seg.line_start, seg.line_end
+            self._ok = np.all(np.isfinite(seg.line_start), axis=1)
+        self._P = np.where(self._ok[:, None], self._P, 0.0)
+        self._Q = np.where(self._ok[:, None], self._Q, 0.0)
+        self._line = np.where(np.isfinite(seg.line), seg.line, 0.0)
+        self.blocks: list[Block] = self._build(max(int(group_size), 1))
+
+    # -- the exact test ------------------------------------------------------------
+    def mask(self, queries: np.ndarray, train: np.ndarray) -> np.ndarray:
+        """``(len(queries), len(train))`` bool: is ``points2[train[j]]`` a candidate of ``queries[i]``."""
+        y = self.points2[train]
+        tol2 = self.tol * self.tol
+        if self.constraint == "line":
+            l = self._line[queries]
+            d = np.abs(l[:, :2] @ y.T + l[:, 2:3])
+            return (d <= self.tol) & self._ok[queries, None]
+        P, D = self._P[queries], self._Q[queries] - self._P[queries]
+        dd = np.einsum("ij,ij->i", D, D)[:, None]
+        wd = D @ y.T - np.einsum("ij,ij->i", P, D)[:, None]  # (y - P) . D
+        ww = (y * y).sum(1)[None, :] - 2.0 * (P @ y.T) + (P * P).sum(1)[:, None]  # |y - P|^2
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = np.clip(wd / dd, 0.0, 1.0)
+        u = np.where(dd > 0, u, 0.0)
+        dist2 = ww - 2.0 * u * wd + u * u * dd
+        return (dist2 <= tol2 * (1 + 1e-9) + 1e-12) & self._ok[queries, None]
+
+    def pairs(self) -> np.ndarray:
+        """All candidate pairs ``(K, 2)`` of ``(query, train)`` indices, sorted by query then train."""
+        out = [np.zeros((0, 2), dtype=np.intp)]
+        for blk in self.blocks:
+            i, j = np.nonzero(self.mask(blk.queries, blk.train))
+            out.append(np.column_stack([blk.queries[i], blk.train[j]]))
+        pairs = np.concatenate(out)
+        return pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
+
+    def candidate_counts(self) -> np.ndarray:
+        """(N1,) number of candidates of each query."""
+        counts = np.zeros(len(self.points1), dtype=np.intp)
+        for blk in self.blocks:
+            counts[blk.queries] = self.mask(blk.queries, blk.train).sum(1)
+        return counts
+
+    # -- building ------------------------------------------------------------------
+    def _pencil(self):
+        """Orthonormal pencil basis in normalised image-2 coordinates, or None for ``t = 0``."""
+        w, h = self.geometry.image_size2
+        self._c = np.array([(w - 1) / 2.0, (h - 1) / 2.0])
+        self._s = float(np.hypot(w, h))
+        b = self.geometry.epipole_homogeneous
+        e = np.array([(b[0] - self._c[0] * b[2]) / self._s, (b[1] - self._c[1] * b[2]) / self._s, b[2]])
+        ne = np.linalg.norm(e)
+        if ne == 0:
+            return None
+        e = e / ne
+        u = np.cross(e, np.eye(3)[np.argmin(np.abs(e))])
+        u /= np.linalg.norm(u)
+        return e, u, np.cross(e, u)
+
+    def _phi_of_points(self, e, u, v, y):
+        """Pencil angle in ``[0, pi)`` of the line through the epipole and each pixel ``y``."""
+        yn = np.column_stack([(y - self._c) / self._s, np.ones(len(y))])
+        l = np.cross(e, yn)
+        return np.mod(np.arctan2(l @ v, l @ u), np.pi), l
+
+    def _build(self, group_size: int) -> list[Block]:
+        n1, n2 = len(self.points1), len(self.points2)
+        q_ok = np.flatnonzero(self._ok)
+        if n2 == 0 or q_ok.size == 0:
+            return []
+        pencil = self._pencil()
+        y = self.points2
+        if pencil is None:  # pure rotation: every segment is a point; one bucket, rho along x
+            q_phi = np.zeros(q_ok.size)
+            edges = np.array([0.0, np.pi])
+            t_idx, t_bucket = np.arange(n2), np.zeros(n2, dtype=np.intp)
+            directions = np.array([[1.0, 0.0]])
+        else:
+            e, u, v = pencil
+            # queries: the pencil angle of their epipolar line, taken in normalised coordinates
+            line = self._line[q_ok]
+            ln = np.column_stack([line[:, 0] * self._s, line[:, 1] * self._s,
+                                  line[:, 0] * self._c[0] + line[:, 1] * self._c[1] + line[:, 2]])
+            q_phi = np.mod(np.arctan2(ln @ v, ln @ u), np.pi)
+            q_phi[~np.any(line != 0, axis=1)] = 0.0  # undefined line: the point is the epipole itself
+            order = np.argsort(q_phi, kind="stable")
+            n_buckets = max(1, int(np.ceil(q_ok.size / (4 * group_size))))
+            cuts = q_phi[order][(np.arange(1, n_buckets) * q_ok.size) // n_buckets]
+            edges = np.concatenate([[0.0], cuts, [np.pi]])
+            # keypoints: the interval of pencil angles of lines within tol of them
+            phi_y, ly = self._phi_of_points(e, u, v, y)
+            normal = ly[:, :2] / np.maximum(np.hypot(ly[:, 0], ly[:, 1]), 1e-300)[:, None]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                # tol / r, with r the pixel distance from y to the epipole (0 at infinity)
+                ratio = (self.tol / self._s) * abs(e[2]) / np.hypot(e[0] - (y[:, 0] - self._c[0]) / self._s * e[2],
+                                                                    e[1] - (y[:, 1] - self._c[1]) / self._s * e[2])
+            ratio = np.where(np.isfinite(ratio), ratio, np.inf)
+            everywhere = ratio >= 1 - 1e-9
+            tau = self.tol / np.sqrt(np.maximum(1.0 - ratio**2, 1e-18)) * (1 + 1e-9) + 1e-9
+            tau = np.where(everywhere, 0.0, tau)
+            lo, _ = self._phi_of_points(e, u, v, y - tau[:, None] * normal)
+            hi, _ = self._phi_of_points(e, u, v, y + tau[:, None] * normal)
+            # the arc from lo to hi (mod pi) must contain phi_y; otherwise it is the other one
+            width = np.mod(hi - lo, np.pi)
+            swap = np.mod(phi_y - lo, np.pi) > width
+            lo, width = np.where(swap, hi, lo), np.where(swap, np.pi - width, width)
+            lo = np.where(everywhere, 0.0, lo)
+            width = np.where(everywhere, np.pi, width)
+            t_idx, t_bucket = _spread(lo, lo + width, edges)
+            # one direction per bucket: the mean direction of its lines (doubled-angle average)
+            q_bucket = np.clip(np.searchsorted(edges, q_phi, side="right") - 1, 0, len(edges) - 2)
+            dirs = np.column_stack([-line[:, 1], line[:, 0]])
+            ang2 = 2 * np.arctan2(dirs[:, 1], dirs[:, 0])
+            cs = np.zeros((len(edges) - 1, 2))
+            np.add.at(cs, q_bucket, np.column_stack([np.cos(ang2), np.sin(ang2)]))
+            half = 0.5 * np.arctan2(cs[:, 1], cs[:, 0])
+            directions = np.column_stack([np.cos(half), np.sin(half)])
+
+        n_b = len(edges) - 1
+        q_bucket = np.clip(np.searchsorted(edges, q_phi, side="right") - 1, 0, n_b - 1)
+        # rho: position along the bucket direction, scaled into [0, 1) so that (bucket + rho) sorts
+        span = 2.0 * (self._s + 2 * self.tol + 1.0)
+        rho_t = ((y[t_idx] - self._c) * directions[t_bucket]).sum(1)
+        key_t = t_bucket + (rho_t / span + 0.5)
+        order_t = np.argsort(key_t, kind="stable")
+        key_t, t_sorted = key_t[order_t], t_idx[order_t]
+
+        d_q = directions[q_bucket]
+        r1 = ((self._P[q_ok] - self._c) * d_q).sum(1)
+        r2 = ((self._Q[q_ok] - self._c) * d_q).sum(1)
+        q_lo, q_hi = np.minimum(r1, r2) - self.tol, np.maximum(r1, r2) + self.tol
+        order_q = np.lexsort((q_lo + q_hi, q_bucket))
+        q_sorted, qb, q_lo, q_hi = q_ok[order_q], q_bucket[order_q], q_lo[order_q], q_hi[order_q]
+        # groups: consecutive queries of one bucket, at most group_size long
+        starts = np.flatnonzero(np.r_[True, qb[1:] != qb[:-1]])
+        first = np.concatenate([np.arange(s, e, group_size) for s, e in zip(starts, np.r_[starts[1:], len(qb)])])
+        g_lo = np.minimum.reduceat(q_lo, first)
+        g_hi = np.maximum.reduceat(q_hi, first)
+        g_b = qb[first]
+        a = np.searchsorted(key_t, g_b + (g_lo / span + 0.5), side="left")
+        z = np.searchsorted(key_t, g_b + (g_hi / span + 0.5), side="right")
+        bounds = np.r_[first, len(qb)]
+        return [Block(q_sorted[bounds[k]:bounds[k + 1]], t_sorted[a[k]:z[k]])
+                for k in range(len(first)) if z[k] > a[k]]
+
+
+def _spread(lo: np.ndarray, hi: np.ndarray, edges: np.ndarray):
+    """Assign each interval ``[lo, hi]`` (angles, ``hi`` may exceed pi) to every bucket it overlaps.
+
+    Returns ``(item, bucket)`` index arrays. Intervals that wrap past pi are
+    split in two.
+    """
+    n_b = len(edges) - 1
+    hi = np.minimum(hi, lo + np.pi)
+    items, lows, highs = [np.arange(len(lo))], [lo], [np.minimum(hi, np.pi)]
+    wrap = hi > np.pi
+    if wrap.any():
+        items.append(np.flatnonzero(wrap))
+        lows.append(np.zeros(wrap.sum()))
+        highs.append(hi[wrap] - np.pi)
+    item, lo, hi = np.concatenate(items), np.concatenate(lows), np.concatenate(highs)
+    k0 = np.clip(np.searchsorted(edges, lo, side="right") - 1, 0, n_b - 1)
+    k1 = np.clip(np.searchsorted(edges, hi, side="right") - 1, 0, n_b - 1)
+    count = k1 - k0 + 1
+    rep_item = np.repeat(item, count)
+    offsets = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
+    bucket = np.repeat(k0, count) + offsets
+    if wrap.any():  # both pieces of a wrapped interval may hit the same bucket
+        key = np.unique(rep_item * n_b + bucket)
+        rep_item, bucket = key // n_b, key % n_b
+    return rep_item, bucket

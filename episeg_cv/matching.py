@@ -1,0 +1,435 @@
+"""Guided matching and outlier rejection on arrays: the numpy core of :class:`SegmentMatcher`.
+
+Points are ``(N, 2)`` float64 pixels, descriptors ``(N, D)`` float32 (SIFT,
+...) or uint8 (ORB, AKAZE, BRISK: packed bits), and matches are ``(K, 2)``
+intp index pairs ``(i1, i2)`` with ``(K,)`` float32 distances, in the same
+units as ``cv2.BFMatcher`` reports.
+
+Guided matching compares each query only with the keypoints of image 2 that
+lie on its epipolar segment (or line), found by
+:class:`~episeg_cv.candidates.CandidateIndex`, and computes the descriptor
+distances block by block with BLAS.
+
+The acceptance rule of :func:`match_descriptors`
+-------------------------------------------------
+A query ``i`` is matched to its nearest candidate ``j`` when
+
+1. ``mutual``: ``i`` is also the nearest, among the queries that have ``j``
+   as a candidate, to ``j``; and
+2. ``ratio``: ``d(i, j) < ratio * d2``, where ``d2`` is the distance to the
+   second-nearest *reference* descriptor: the second candidate, or any of
+   ``pad`` keypoints of image 2 drawn at random (the same for all queries),
+   whichever is nearer.
+
+The padding gives a query with a single candidate something to be compared
+with, as Theia's guided matching does; without it a ratio test inside a
+restricted candidate set lets every lone candidate through. The defaults were
+chosen on the precision-recall benchmark (``benchmarks/compare.py``; see the
+README).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ._validation import as_nonnegative, as_points
+from .candidates import CandidateIndex, check_constraint
+from .geometry import Rejection, TwoViewGeometry
+
+__all__ = ["match_descriptors", "knn_descriptors", "radius_descriptors", "filter_pairs", "explain_pairs",
+           "GuidedResult", "DEFAULT_RATIO", "DEFAULT_PAD"]
+
+#: Default ratio of the acceptance rule (chosen on the benchmark).
+DEFAULT_RATIO = 0.8
+#: Default number of random reference descriptors for the ratio test.
+DEFAULT_PAD = 32
+
+_NORMS = {cv2.NORM_L1: "l1", cv2.NORM_L2: "l2", cv2.NORM_L2SQR: "l2sqr", cv2.NORM_HAMMING: "hamming",
+          "l1": "l1", "l2": "l2", "l2sqr": "l2sqr", "hamming": "hamming"}
+
+
+def check_norm(norm) -> str:
+    key = norm.lower() if isinstance(norm, str) else norm
+    if isinstance(key, (bool, np.bool_)) or key not in _NORMS:
+        raise ValueError("normType must be cv2.NORM_L1, cv2.NORM_L2, cv2.NORM_L2SQR or cv2.NORM_HAMMING "
+                         f"(or 'l1', 'l2', 'l2sqr', 'hamming'), got {norm!r}")
+    return _NORMS[key]
+
+
+def check_descriptors(descriptors1, descriptors2, norm: str, names=("descriptors1", "descriptors2")):
+    """Validate a pair of descriptor arrays against each other and the norm; returns them as arrays."""
+    out = []
+    for name, d in zip(names, (descriptors1, descriptors2)):
+        if d is None:
+            d = np.zeros((0, 0), dtype=np.float32)
+        d = np.asarray(d)
+        if d.dtype not in (np.float32, np.float64, np.uint8):
+            raise TypeError(f"{name} must be float32 or uint8 (as OpenCV's detectors give), got dtype {d.dtype}")
+        if d.size == 0:
+            d = d.reshape(0, d.shape[1] if d.ndim == 2 else 0)
+        if d.ndim != 2:
+            raise ValueError(f"{name} must have shape (N, D), got shape {d.shape}")
+        if d.dtype != np.uint8 and d.size and not np.all(np.isfinite(d)):
+            raise ValueError(f"{name} must be finite, got NaN or inf")
+        out.append(d)
+    d1, d2 = out
+    if d1.shape[0] and d2.shape[0]:
+        if d1.dtype != d2.dtype:
+            raise TypeError(f"{names[0]} and {names[1]} must have the same dtype, got {d1.dtype} and {d2.dtype}")
+        if d1.shape[1] != d2.shape[1]:
+            raise ValueError(f"{names[0]} and {names[1]} must have the same width, got {d1.shape[1]} and {d2.shape[1]}")
+    for name, d in zip(names, (d1, d2)):
+        if d.shape[0] and norm == "hamming" and d.dtype != np.uint8:
+            raise TypeError(f"{name}: NORM_HAMMING needs uint8 (binary) descriptors, got {d.dtype}")
+    return d1, d2
+
+
+def _check_points(points, descriptors, name, dname):
+    p = as_points(points, name)
+    if p.shape[0] != descriptors.shape[0]:
+        raise ValueError(f"{name} has {p.shape[0]} keypoints but {dname} has {descriptors.shape[0]} rows")
+    return p
+
+
+class _Distances:
+    """Descriptor distances for blocks of pairs; BLAS for L2 and Hamming."""
+
+    def __init__(self, d1: np.ndarray, d2: np.ndarray, norm: str):
+        self.norm = norm
+        self.raw1, self.raw2 = d1, d2
+        if norm == "hamming":
+            self.nbits = 8 * d1.shape[1]
+            self.a = (np.unpackbits(d1, axis=1).astype(np.float32) * 2 - 1)
+            self.b = (np.unpackbits(d2, axis=1).astype(np.float32) * 2 - 1)
+        else:
+            self.a = d1.astype(np.float32, copy=False)
+            self.b = d2.astype(np.float32, copy=False)
+            self.aa = np.einsum("ij,ij->i", self.a, self.a)
+            self.bb = np.einsum("ij,ij->i", self.b, self.b)
+
+    def scores(self, qi: np.ndarray, tj: np.ndarray) -> np.ndarray:
+        """``(len(qi), len(tj))`` float32 scores, increasing with distance (squared for L2)."""
+        if self.norm == "hamming":
+            return (self.nbits - self.a[qi] @ self.b[tj].T) * np.float32(0.5)
+        if self.norm == "l1":
+            return np.abs(self.a[qi][:, None, :] - self.b[tj][None, :, :]).sum(-1)
+        s = self.aa[qi][:, None] + self.bb[tj][None, :] - 2.0 * (self.a[qi] @ self.b[tj].T)
+        return np.maximum(s, 0.0, out=s)
+
+    def to_distance(self, scores: np.ndarray) -> np.ndarray:
+        return np.sqrt(scores) if self.norm == "l2" else scores
+
+    def exact(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+        """Paired distances ``d(i[k], j[k])`` as float32, computed directly (as ``cv2`` reports them)."""
+        if len(i) == 0:
+            return np.zeros(0, dtype=np.float32)
+        if self.norm == "hamming":
+            return np.unpackbits(self.raw1[i] ^ self.raw2[j], axis=1).sum(1).astype(np.float32)
+        diff = self.raw1[i].astype(np.float64) - self.raw2[j].astype(np.float64)
+        if self.norm == "l1":
+            return np.abs(diff).sum(1).astype(np.float32)
+        sq = np.einsum("ij,ij->i", diff, diff)
+        return (np.sqrt(sq) if self.norm == "l2" else sq).astype(np.float32)
+
+
+@dataclass(frozen=True)
+class GuidedResult:
+    """The nearest candidates of every query, from one scan of the candidate blocks.
+
+    Attributes
+    ----------
+    indices : (N1, k) intp
+        Nearest candidates in image 2, nearest first; -1 where there are fewer.
+    scores : (N1, k) float32
+        Their scores (squared distance for L2), inf where missing.
+    counts : (N1,) intp
+        Number of candidates of each query.
+    column_best : (N2,) intp
+        For each keypoint of image 2, the nearest query having it as a
+        candidate, or -1.
+    """
+
+    indices: np.ndarray
+    scores: np.ndarray
+    counts: np.ndarray
+    column_best: np.ndarray
+
+
+def _scan(index: CandidateIndex, dist: _Distances, k: int, radius: float | None = None):
+    n1, n2 = len(index.points1), len(index.points2)
+    idx = np.full((n1, k), -1, dtype=np.intp)
+    sc = np.full((n1, k), np.inf, dtype=np.float32)
+    counts = np.zeros(n1, dtype=np.intp)
+    col_s = np.full(n2, np.inf, dtype=np.float32)
+    col_i = np.full(n2, -1, dtype=np.intp)
+    within = []
+    for blk in index.blocks:
+        q, tr = blk.queries, blk.train
+        m = index.mask(q, tr)
+        s = dist.scores(q, tr).astype(np.float32, copy=False)
+        s[~m] = np.inf
+        counts[q] = m.sum(1)
+        if radius is not None:
+            r, c = np.nonzero(m & (s <= radius))
+            within.append((q[r], tr[c], s[r, c]))
+        kk = min(k, len(tr))
+        if kk < len(tr):
+            part = np.argpartition(s, kk - 1, axis=1)[:, :kk]
+        else:
+            part = np.broadcast_to(np.arange(kk), (len(q), kk))
+        ps = np.take_along_axis(s, part, axis=1)
+        o = np.argsort(ps, axis=1, kind="stable")
+        ps, part = np.take_along_axis(ps, o, axis=1), np.take_along_axis(part, o, axis=1)
+        sc[q, :kk] = ps
+        idx[q, :kk] = np.where(np.isfinite(ps), tr[part], -1)
+        # nearest query of each keypoint, over this block
+        rbest = np.argmin(s, axis=0)
+        cbest = s[rbest, np.arange(len(tr))]
+        better = cbest < col_s[tr]
+        col_s[tr[better]] = cbest[better]
+        col_i[tr[better]] = q[rbest[better]]
+    return GuidedResult(idx, sc, counts, col_i), within
+
+
+def _prepare(descriptors1, descriptors2, points1, points2, geometry, norm, tol, constraint):
+    if not isinstance(geometry, TwoViewGeometry):
+        raise TypeError(f"geometry must be a TwoViewGeometry, got {type(geometry).__name__}")
+    norm = check_norm(norm)
+    constraint = check_constraint(constraint)
+    tol = as_nonnegative(tol, "tol")
+    d1, d2 = check_descriptors(descriptors1, descriptors2, norm)
+    p1 = _check_points(points1, d1, "points1", "descriptors1")
+    p2 = _check_points(points2, d2, "points2", "descriptors2")
+    return d1, d2, p1, p2, norm, constraint, tol
+
+
+def knn_descriptors(descriptors1, descriptors2, points1, points2, geometry, *, k=2, norm="l2", tol=2.0,
+                    depth_range=(0.0, np.inf), constraint="segment", group_size=32):
+    """The ``k`` nearest candidates of each query on its segment (or line).
+
+    Parameters
+    ----------
+    descriptors1, descriptors2 : (N1, D), (N2, D) array_like
+        float32 (or float64) for L1/L2, uint8 for Hamming; same dtype and width.
+    points1, points2 : (N1, 2), (N2, 2) array_like
+        Keypoint pixels (OpenCV convention, pixel centres at integers).
+    geometry : TwoViewGeometry
+        Known pose, ``X2 = R @ X1 + t``.
+    k : int
+        Neighbours per query (>= 1).
+    norm : {"l2", "l1", "l2sqr", "hamming"} or cv2.NORM_*
+    tol : float
+        Pixel distance to the segment (or line) within which a keypoint is a candidate.
+    depth_range : (zmin, zmax)
+        Depth bounds in camera 1, see :meth:`TwoViewGeometry.segments`.
+    constraint : {"segment", "line"}
+        ``"line"`` is plain epipolar filtering, by the same code path.
+
+    Returns
+    -------
+    GuidedResult
+        ``indices``/``scores`` of shape ``(N1, k)``; convert scores to distances
+        with ``np.sqrt`` for L2.
+
+    Raises
+    ------
+    ValueError, TypeError
+        On bad input (shapes, dtypes, norms, ``k < 1``, ``tol < 0``).
+    """
+    d1, d2, p1, p2, norm, constraint, tol = _prepare(descriptors1, descriptors2, points1, points2,
+                                                    geometry, norm, tol, constraint)
+    k = _check_k(k)
+    if constraint == "none":
+        raise ValueError("knn_descriptors needs constraint 'segment' or 'line'; use cv2.BFMatcher for 'none'")
+    index = CandidateIndex(geometry, p1, p2, tol=tol, depth_range=depth_range, constraint=constraint,
+                           group_size=group_size)
+    return _scan(index, _Distances(d1, d2, norm), k)[0]
+
+
+def _check_k(k):
+    if isinstance(k, (bool, np.bool_)) or not isinstance(k, (int, np.integer)):
+        raise TypeError(f"k must be an integer >= 1, got {type(k).__name__}")
+    if k < 1:
+        raise ValueError(f"k must be >= 1, got {k}")
+    return int(k)
+
+
+def radius_descriptors(descriptors1, descriptors2, points1, points2, geometry, *, max_distance, norm="l2",
+                       tol=2.0, depth_range=(0.0, np.inf), constraint="segment"):
+    """All candidates within ``max_distance`` (descriptor units): ``(pairs (K, 2), distances (K,))``,
+    sorted by query, then by distance."""
+    d1, d2, p1, p2, norm, constraint, tol = _prepare(descriptors1, descriptors2, points1, points2,
+                                                    geometry, norm, tol, constraint)
+    max_distance = as_nonnegative(max_distance, "maxDistance")
+    index = CandidateIndex(geometry, p1, p2, tol=tol, depth_range=depth_range, constraint=constraint)
+    dist = _Distances(d1, d2, norm)
+    limit = max_distance**2 if norm == "l2" else max_distance
+    _, within = _scan(index, dist, 1, radius=np.float32(limit))
+    i = np.concatenate([w[0] for w in within] + [np.zeros(0, np.intp)])
+    j = np.concatenate([w[1] for w in within] + [np.zeros(0, np.intp)])
+    d = dist.exact(i, j)
+    keep = d <= max_distance  # exact check at the boundary
+    i, j, d = i[keep], j[keep], d[keep]
+    o = np.lexsort((j, d, i))
+    return np.column_stack([i[o], j[o]]).astype(np.intp), d[o]
+
+
+def match_descriptors(descriptors1, descriptors2, points1, points2, geometry, *, norm="l2", tol=2.0,
+                      depth_range=(0.0, np.inf), constraint="segment", ratio=DEFAULT_RATIO, mutual=True,
+                      pad=DEFAULT_PAD, cross_check=False, rng=0, group_size=32):
+    """Match descriptors, comparing each query only with the keypoints on its epipolar segment.
+
+    Parameters
+    ----------
+    descriptors1, descriptors2, points1, points2, geometry, norm, tol, depth_range, constraint
+        As in :func:`knn_descriptors`.
+    ratio : float in (0, 1], optional
+        Ratio test against the second reference descriptor (see the module
+        docstring). 1.0 disables it.
+    mutual : bool, optional
+        Keep a match only if the query is also the nearest to its keypoint
+        among the queries that have that keypoint as a candidate.
+    pad : int, optional
+        Random keypoints of image 2 added to the ratio test's references (0 for none).
+    cross_check : bool, optional
+        Mutual nearest neighbour in both directions, the reverse one with
+        ``geometry.inverse()`` (its own segments in image 1). Replaces ``mutual``.
+    rng : int or numpy.random.Generator, optional
+        Seed for the padding draw (fixed by default, so results repeat).
+
+    Returns
+    -------
+    pairs : (K, 2) intp
+        ``(i1, i2)`` indices, sorted by ``i1``.
+    distances : (K,) float32
+        Descriptor distances, as ``cv2.BFMatcher`` reports them.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from episeg_cv import TwoViewGeometry
+    >>> K = [[100, 0, 50], [0, 100, 50], [0, 0, 1]]
+    >>> g = TwoViewGeometry(K, K, np.eye(3), [-1, 0, 0], image_size1=(100, 100), image_size2=(100, 100))
+    >>> p1 = np.array([[60.0, 20.0], [60.0, 70.0]])
+    >>> p2 = np.array([[40.0, 20.0], [80.0, 70.0]])        # the second is on the wrong side of the row
+    >>> d = np.eye(2, 8, dtype=np.float32)
+    >>> pairs, dist = match_descriptors(d, d, p1, p2, g, pad=0)
+    >>> pairs.tolist(), dist.tolist()
+    ([[0, 0]], [0.0])
+    """
+    d1, d2, p1, p2, norm, constraint, tol = _prepare(descriptors1, descriptors2, points1, points2,
+                                                    geometry, norm, tol, constraint)
+    if isinstance(ratio, (bool, np.bool_)) or not isinstance(ratio, (int, float, np.floating)) or not 0 < ratio <= 1:
+        raise ValueError(f"ratio must be in (0, 1], got {ratio!r}")
+    if isinstance(pad, (bool, np.bool_)) or not isinstance(pad, (int, np.integer)) or pad < 0:
+        raise ValueError(f"pad must be an integer >= 0, got {pad!r}")
+    if constraint == "none":
+        raise ValueError("match_descriptors needs constraint 'segment' or 'line'; use cv2.BFMatcher for 'none'")
+    dist = _Distances(d1, d2, norm)
+    index = CandidateIndex(geometry, p1, p2, tol=tol, depth_range=depth_range, constraint=constraint,
+                           group_size=group_size)
+    res, _ = _scan(index, dist, 2)
+    i = np.flatnonzero(res.indices[:, 0] >= 0)
+    j = res.indices[i, 0]
+    s1, s2 = res.scores[i, 0], res.scores[i, 1]
+    n_pad = min(int(pad), len(p2))
+    if n_pad and len(i):
+        pad_j = np.sort(np.random.default_rng(rng).choice(len(p2), n_pad, replace=False))
+        ps = dist.scores(i, pad_j)
+        ps[pad_j[None, :] == j[:, None]] = np.inf
+        s2 = np.minimum(s2, ps.min(axis=1))
+    if ratio < 1:
+        r = ratio * ratio if norm == "l2" else ratio
+        keep = s1 < r * s2
+        i, j = i[keep], j[keep]
+    if cross_check:
+        # bounds on z1 are not bounds on z2: the reverse pass uses the whole half-line (0, inf)
+        back = CandidateIndex(geometry.inverse(), p2, p1, tol=tol, constraint=constraint, group_size=group_size)
+        rev, _ = _scan(back, _Distances(d2, d1, norm), 1)
+        keep = rev.indices[j, 0] == i
+        i, j = i[keep], j[keep]
+    elif mutual:
+        keep = res.column_best[j] == i
+        i, j = i[keep], j[keep]
+    return np.column_stack([i, j]).astype(np.intp), dist.exact(i, j)
+
+
+def filter_pairs(pairs, points1, points2, geometry, *, tol=2.0, depth_range=(0.0, np.inf), constraint="segment"):
+    """Outlier rejection after matching: which pairs satisfy the constraint.
+
+    Parameters
+    ----------
+    pairs : (K, 2) array_like of int
+        ``(i1, i2)`` indices into ``points1`` and ``points2``.
+    points1, points2 : (N1, 2), (N2, 2) array_like
+    geometry : TwoViewGeometry
+    tol : float
+        Pixel distance to the segment (or line).
+    depth_range : (zmin, zmax)
+    constraint : {"segment", "line", "none"}
+
+    Returns
+    -------
+    (K,) bool
+        True where the pair is kept.
+
+    Raises
+    ------
+    ValueError
+        A pair index out of range, or other bad input.
+    """
+    constraint = check_constraint(constraint)
+    tol = as_nonnegative(tol, "tol")
+    pairs, p1, p2 = _check_pairs(pairs, points1, points2)
+    if constraint == "none":
+        return np.ones(len(pairs), dtype=bool)
+    seg = geometry.segments(p1, depth_range, margin=tol).take(pairs[:, 0])
+    y = p2[pairs[:, 1]]
+    d = seg.distance(y) if constraint == "segment" else seg.line_distance(y)
+    return d <= tol
+
+
+def _check_pairs(pairs, points1, points2):
+    p1, p2 = as_points(points1, "points1"), as_points(points2, "points2")
+    arr = np.asarray(pairs)
+    if arr.size == 0:
+        arr = arr.reshape(0, 2)
+    if arr.ndim != 2 or arr.shape[1] != 2 or not (np.issubdtype(arr.dtype, np.integer)):
+        raise ValueError(f"pairs must be a (K, 2) integer array, got shape {arr.shape} and dtype {arr.dtype}")
+    for col, n, name in ((0, len(p1), "points1"), (1, len(p2), "points2")):
+        bad = (arr[:, col] < 0) | (arr[:, col] >= n)
+        if bad.any():
+            raise ValueError(f"match index {int(arr[bad, col][0])} out of range for {name} with {n} keypoints")
+    return arr.astype(np.intp), p1, p2
+
+
+def explain_pairs(pairs, points1, points2, geometry, *, tol=2.0, depth_range=(0.0, np.inf)):
+    """Why each pair passes or fails the segment constraint.
+
+    Returns
+    -------
+    labels : (K,) int8
+        :class:`~episeg_cv.geometry.Rejection` labels.
+    counts : dict[str, int]
+        Number of pairs per label name, every label present (zero included).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from episeg_cv import TwoViewGeometry
+    >>> K = [[100, 0, 50], [0, 100, 50], [0, 0, 1]]
+    >>> g = TwoViewGeometry(K, K, np.eye(3), [-1, 0, 0], image_size1=(100, 100), image_size2=(100, 100))
+    >>> labels, counts = explain_pairs([[0, 0], [0, 1], [0, 2]], [[50.0, 50.0]],
+    ...                                [[30.0, 50.0], [70.0, 50.0], [30.0, 80.0]], g)
+    >>> counts["on_segment"], counts["beyond_infinity"], counts["off_line"]
+    (1, 1, 1)
+    """
+    tol = as_nonnegative(tol, "tol")
+    pairs, p1, p2 = _check_pairs(pairs, points1, points2)
+    seg = geometry.segments(p1, depth_range, margin=tol).take(pairs[:, 0])
+    labels = seg.classify(p2[pairs[:, 1]], tol)
+    counts = {name: int((labels == code).sum()) for code, name in enumerate(Rejection.NAMES)}
+    return labels, counts
