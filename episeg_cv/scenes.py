@@ -991,6 +991,9 @@ class PoseCase:
     R_given, t_given : (3, 3), (3,) float64
         The relative pose handed to the matcher: equal to ``R, t`` except for
         ``noisy_pose``, where it is off by about 0.5 degrees and 2 % in direction.
+    clear_between : bool
+        No box stands between the two cameras (so that each sees the other's
+        position and the wall behind it).
     """
 
     name: str
@@ -1007,6 +1010,7 @@ class PoseCase:
     t: np.ndarray
     R_given: np.ndarray
     t_given: np.ndarray
+    clear_between: bool = False
 
     def __post_init__(self):
         for f in ("K1", "K2", "R1", "t1", "R2", "t2", "R", "t", "R_given", "t_given"):
@@ -1029,8 +1033,15 @@ class PoseCase:
         """World positions of the two camera centres, ``-R_i^T t_i``."""
         return -self.R1.T @ self.t1, -self.R2.T @ self.t2
 
+    def keep_clear(self) -> list:
+        """World points that boxes keep clear of: the camera centres (and the line between them)."""
+        C1, C2 = self.centers
+        if not self.clear_between:
+            return [C1, C2]
+        return [C1 + s * (C2 - C1) for s in np.linspace(0.0, 1.0, 9)]
 
-def _case(name, description, seed, K1, K2, cam1, cam2=None, relative=None, noise=None) -> PoseCase:
+
+def _case(name, description, seed, K1, K2, cam1, cam2=None, relative=None, noise=None, clear_between=False) -> PoseCase:
     R1, t1 = look_at(*cam1[:2], *cam1[2:])
     if relative is not None:
         R, t = (np.asarray(a, dtype=np.float64) for a in relative)
@@ -1049,7 +1060,7 @@ def _case(name, description, seed, K1, K2, cam1, cam2=None, relative=None, noise
         d -= (d @ u) * u
         u2 = u + dir_frac * d / np.linalg.norm(d)
         t_given = u2 / np.linalg.norm(u2) * np.linalg.norm(t)
-    return PoseCase(name, description, seed, SUITE_IMAGE_SIZE, K1, K2, R1, t1, R2, t2, R, t, R_given, t_given)
+    return PoseCase(name, description, seed, SUITE_IMAGE_SIZE, K1, K2, R1, t1, R2, t2, R, t, R_given, t_given, clear_between)
 
 
 def _converging_cameras():
@@ -1079,7 +1090,7 @@ def _suite() -> dict:
         _case("converging", "wide baseline (5.5 m), views converging by about 35 degrees; the epipole is in image 2",
               104, K, Kb, *[(c, tg) for c, tg in _converging_cameras()]),
         _case("face_to_face", "the cameras face each other from opposite ends of the room (8 m apart)", 105, K, K,
-              ((0.3, 0.0, -4.0), (-0.5, -0.05, 4.0)), ((-0.4, -0.1, 4.0), (0.2, 0.05, -4.0))),
+              ((0.3, 0.0, -4.0), (-0.5, -0.05, 4.0)), ((-0.4, -0.1, 4.0), (0.2, 0.05, -4.0)), clear_between=True),
         _case("near_pure_rotation", "|t| = 2 cm for a scene 2 to 9 m away, rotation about 9 degrees", 106, K, K,
               ((0.5, 0.0, -2.0), (1.5, 0.2, 5.0)), ((0.515, -0.01, -1.992), (2.6, -0.3, 5.0))),
         _case("partial_behind", "crossing views, camera 2 turned 67 degrees: (R K1^-1 x)_3 < 0 for the left part of image 1", 107, K, K,
@@ -1123,8 +1134,8 @@ def pose_suite() -> dict:
 
 
 @functools.lru_cache(maxsize=16)
-def _case_scene(seed: int, centers: tuple) -> Scene:
-    return make_room_scene(rng=seed, keep_clear=[np.array(c) for c in centers])
+def _case_scene(seed: int, keep_clear: tuple) -> Scene:
+    return make_room_scene(rng=seed, keep_clear=[np.array(c) for c in keep_clear])
 
 
 @dataclass(frozen=True, eq=False)
@@ -1212,7 +1223,7 @@ def make_pair(name: str, image_size=SUITE_IMAGE_SIZE, seed: int | None = None, s
         ``(width, height)``; the intrinsics are scaled from 640 x 480 (same field of view).
     seed : int, optional
         Seed of the room; default (None) the case's own fixed seed. Boxes are
-        kept clear of both cameras whatever the seed.
+        kept clear of both cameras (:meth:`PoseCase.keep_clear`) whatever the seed.
     supersample : int, optional
         Passed to :func:`render`.
 
@@ -1235,8 +1246,7 @@ def make_pair(name: str, image_size=SUITE_IMAGE_SIZE, seed: int | None = None, s
     case = suite[name]
     size = as_image_size(image_size, "image_size")
     s = case.seed if seed is None else int(seed)
-    C1, C2 = case.centers
-    scene = _case_scene(s, (tuple(C1.tolist()), tuple(C2.tolist())))
+    scene = _case_scene(s, tuple(tuple(c.tolist()) for c in case.keep_clear()))
     K1, K2 = case.intrinsics(size)
     image1, depth1 = render(scene, K1, case.R1, case.t1, size, supersample)
     image2, depth2 = render(scene, K2, case.R2, case.t2, size, supersample)
