@@ -669,15 +669,29 @@ class GroundTruth:
     distance : (N1,) float64
         Pixel distance from ``projected`` to the true match; ``inf`` where
         there is none.
+    points2 : (N2, 2) float64
+        The view-2 keypoints searched.
+    max_px : float
+        The matching radius, pixels.
+
+    Notes
+    -----
+    A returned match ``(i1, i2)`` is *correct* (:meth:`is_correct`) when
+    keypoint ``i1`` is visible and ``points2[i2]`` lies within ``max_px`` of
+    its projection. This is not ``match[i1] == i2``: detectors such as SIFT
+    return several keypoints at one position (one per orientation), and any
+    of them is a right answer. ``match`` is the nearest one.
     """
 
     match: np.ndarray
     projected: np.ndarray
     visible: np.ndarray
     distance: np.ndarray
+    points2: np.ndarray
+    max_px: float
 
     def __post_init__(self):
-        for f in ("match", "projected", "visible", "distance"):
+        for f in ("match", "projected", "visible", "distance", "points2"):
             getattr(self, f).flags.writeable = False
 
     def __len__(self) -> int:
@@ -694,7 +708,11 @@ class GroundTruth:
         return int(np.count_nonzero(self.match >= 0))
 
     def is_correct(self, matches) -> np.ndarray:
-        """Which of the ``(K, 2)`` index pairs ``(i1, i2)`` are the true match.
+        """Which of the ``(K, 2)`` index pairs ``(i1, i2)`` are correct.
+
+        ``(i1, i2)`` is correct iff keypoint ``i1`` is visible in view 2 and
+        ``points2[i2]`` lies within ``max_px`` of its projection (see Notes of
+        :class:`GroundTruth`).
 
         Returns
         -------
@@ -705,15 +723,15 @@ class GroundTruth:
             return np.zeros(0, dtype=bool)
         if m.ndim != 2 or m.shape[1] != 2 or not np.issubdtype(m.dtype, np.integer):
             raise ValueError(f"matches must be a (K, 2) integer array, got shape {m.shape} and dtype {m.dtype}")
-        if m.min() < 0 or m[:, 0].max() >= len(self):
-            raise ValueError(f"matches[:, 0] must index the {len(self)} view-1 keypoints")
-        return self.match[m[:, 0]] == m[:, 1]
+        if m.min() < 0 or m[:, 0].max() >= len(self) or m[:, 1].max() >= len(self.points2):
+            raise ValueError(f"matches must index the {len(self)} view-1 and {len(self.points2)} view-2 keypoints")
+        with np.errstate(invalid="ignore"):
+            return self.visible[m[:, 0]] & (self.error(m) <= self.max_px)
 
-    def error(self, matches, points2) -> np.ndarray:
+    def error(self, matches) -> np.ndarray:
         """(K,) pixel distance from ``points2[i2]`` to the projection of keypoint ``i1``; NaN if unknown."""
         m = np.asarray(matches, dtype=np.intp).reshape(-1, 2)
-        p2 = as_points(points2, "points2")
-        return np.hypot(*(p2[m[:, 1]] - self.projected[m[:, 0]]).T)
+        return np.hypot(*(self.points2[m[:, 1]] - self.projected[m[:, 0]]).T)
 
 
 def _as_map(a, name: str) -> np.ndarray:
@@ -894,7 +912,7 @@ def ground_truth_matches(points1, points2, depth1, depth2, geometry: TwoViewGeom
     with np.errstate(invalid="ignore"):
         visible = front & _inside(proj, d2.shape) & (np.abs(d2_at - z2) <= depth_rtol * z2)
     match, dist = _nearest_within(np.where(visible[:, None], proj, np.nan), p2, max_px)
-    return GroundTruth(match, proj, visible, dist)
+    return GroundTruth(match, proj, visible, dist, p2, max_px)
 
 
 def disparity_ground_truth(points1, points2, disparity, image_size2, max_px: float = 2.0) -> GroundTruth:
@@ -941,7 +959,7 @@ def disparity_ground_truth(points1, points2, disparity, image_size2, max_px: flo
     visible = np.isfinite(d) & _inside(proj, (h2, w2))
     proj[~np.isfinite(d)] = np.nan
     match, dist = _nearest_within(np.where(visible[:, None], proj, np.nan), p2, max_px)
-    return GroundTruth(match, proj, visible, dist)
+    return GroundTruth(match, proj, visible, dist, p2, max_px)
 
 
 # --------------------------------------------------------------------------------------

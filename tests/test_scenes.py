@@ -328,8 +328,13 @@ def test_ground_truth_two_planes(two_planes):
     assert gt.distance[0] == pytest.approx(np.hypot(62.5 - (70 - d_wall), 0.5))
     assert gt.distance[1] < 1e-9 and np.isinf(gt.distance[[2, 3, 4]]).all()
     assert gt.num_matchable == 2 and gt.matchable.tolist() == [True, True, False, False, False]
+    # correct = visible and within 3 px of the projection (keypoint 3 sits on point 2's
+    # projection, but point 2 is occluded)
     assert gt.is_correct([[0, 1], [0, 0], [1, 2], [2, 3]]).tolist() == [True, False, True, False]
-    np.testing.assert_allclose(gt.error([[0, 1]], points2), [gt.distance[0]])
+    np.testing.assert_allclose(gt.error([[0, 1]]), [gt.distance[0]])
+    # a duplicate keypoint (same position, e.g. another SIFT orientation) is correct too
+    dup = ground_truth_matches(points1, np.vstack([points2, points2[1]]), depth1, depth2, g)
+    assert dup.match[0] == 1 and dup.is_correct([[0, 5], [0, 1]]).tolist() == [True, True]
     # with a 10 px radius point 0 has two keypoints in reach (0.97 and 3.33 px): the nearest wins
     assert ground_truth_matches(points1, points2, depth1, depth2, g, max_px=10.0).match.tolist() == [1, 2, -1, -1, -1]
 
