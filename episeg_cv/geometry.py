@@ -98,7 +98,7 @@ def _clip(U, V, s0, s1, rect, cheirality_c=None):
     lo = np.full(n, float(s0))
     hi = np.full(n, float(s1))
     infeasible = np.zeros(n, dtype=bool)
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         for P, Q in constraints:
             r = -P / Q
             np.maximum(lo, np.where(Q > 0, r, -np.inf), out=lo)
@@ -108,14 +108,14 @@ def _clip(U, V, s0, s1, rect, cheirality_c=None):
 
 
 def _dehomogenise(w: np.ndarray) -> np.ndarray:
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         return w[:, :2] / w[:, 2:3]
 
 
 def _point_segment_distance(p, start, end):
     d = end - start
     dd = np.einsum("ij,ij->i", d, d)
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         u = np.clip(np.einsum("ij,ij->i", p - start, d) / dd, 0.0, 1.0)
     u = np.where(dd > 0, u, 0.0)
     return np.hypot(*(p - start - u[:, None] * d).T)
@@ -189,7 +189,7 @@ class EpipolarSegments:
         NaN where the line misses the image (``line_length == 0``).
         """
         ll = self.line_length
-        with np.errstate(divide="ignore", invalid="ignore"):
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             return np.where(ll > 0, 1.0 - np.minimum(self.length, ll) / ll, np.nan)
 
     def take(self, indices) -> "EpipolarSegments":
@@ -264,7 +264,7 @@ class EpipolarSegments:
         d = np.column_stack([-line[:, 1], line[:, 0]])  # unit direction along the line
 
         def coord(w):  # position along the line of homogeneous points; inf at infinity (never crossed)
-            with np.errstate(divide="ignore", invalid="ignore"):
+            with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
                 u = np.einsum("ij,ij->i", w[:, :2], d) / w[:, 2]
             return np.where(w[:, 2] != 0, u, np.inf)
 
@@ -369,8 +369,9 @@ class TwoViewGeometry:
         Ks, Rs, ts = [], [], []
         for name, P in (("P1", P1), ("P2", P2)):
             P = as_array(P, name, (3, 4))
-            det = np.linalg.det(P[:, :3])
-            if not np.isfinite(det) or abs(det) < 1e-12 * max(np.abs(P[:, :3]).max(), 1e-300) ** 3:
+            scale = np.abs(P[:, :3]).max()
+            det = np.linalg.det(P[:, :3] / scale) if scale > 0 else 0.0  # scale-free, cannot overflow
+            if not abs(det) > 1e-12:
                 raise ValueError(f"{name} must be a finite camera K [R | t] with an invertible left 3x3 block")
             P = P * np.sign(det)
             K, R = _rq(P[:, :3])
@@ -398,7 +399,7 @@ class TwoViewGeometry:
     @property
     def epipole(self) -> np.ndarray:
         """(2,) the epipole in image 2, in pixels; inf or NaN when ``t_3 = 0``."""
-        with np.errstate(divide="ignore", invalid="ignore"):
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             return self.epipole_homogeneous[:2] / self.epipole_homogeneous[2]
 
     def __repr__(self) -> str:
@@ -483,7 +484,7 @@ class TwoViewGeometry:
 
         line = np.cross(b, a)
         norm = np.hypot(line[:, 0], line[:, 1])
-        with np.errstate(divide="ignore", invalid="ignore"):
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             line = line / np.where(norm > 0, norm, np.nan)[:, None]
         # the whole line, p0 + s d with s in R, clipped to the same rectangle
         p0 = -line[:, 2:3] * line[:, :2]
@@ -494,7 +495,7 @@ class TwoViewGeometry:
         lvalid &= np.isfinite(norm) & (norm > 0)
         line_start = np.where(lvalid[:, None], p0 + llo[:, None] * d, np.nan)
         line_end = np.where(lvalid[:, None], p0 + lhi[:, None] * d, np.nan)
-        with np.errstate(divide="ignore", invalid="ignore"):
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             p_inf = a[:, :2] / a[:, 2:3]
         return EpipolarSegments(start, end, valid, line, p_inf, self.epipole, line_start, line_end, margin, a, b.copy())
 
