@@ -76,6 +76,8 @@ class CandidateIndex:
     group_size : int, optional
         Queries per block. Larger blocks mean fewer Python steps but more
         wasted pairs.
+    bucket_size : int, optional
+        Queries per pencil bucket (each bucket is cut into blocks).
 
     Examples
     --------
@@ -92,7 +94,8 @@ class CandidateIndex:
     """
 
     def __init__(self, geometry: TwoViewGeometry, points1, points2, *, tol: float = 2.0,
-                 depth_range=(0.0, np.inf), constraint: str = "segment", group_size: int = 32):
+                 depth_range=(0.0, np.inf), constraint: str = "segment", group_size: int = 32,
+                 bucket_size: int = 128):
         if not isinstance(geometry, TwoViewGeometry):
             raise TypeError(f"geometry must be a TwoViewGeometry, got {type(geometry).__name__}")
         constraint = check_constraint(constraint)
@@ -114,26 +117,52 @@ class CandidateIndex:
         self._P = np.where(self._ok[:, None], self._P, 0.0)
         self._Q = np.where(self._ok[:, None], self._Q, 0.0)
         self._line = np.where(np.isfinite(seg.line), seg.line, 0.0)
-        self.blocks: list[Block] = self._build(max(int(group_size), 1))
+        # a local frame per query: unit normal n and direction d of its segment (or line), so that a
+        # point y is at offset n.y - off_n across and s = d.y - off_d along, with 0 <= s <= length
+        D = self._Q - self._P
+        length = np.hypot(D[:, 0], D[:, 1])
+        d = np.where(length[:, None] > 0, D / np.where(length > 0, length, 1.0)[:, None], [1.0, 0.0])
+        n = np.column_stack([-d[:, 1], d[:, 0]])
+        if constraint == "line":
+            n, off_n = self._line[:, :2], -self._line[:, 2]
+        else:
+            off_n = (n * self._P).sum(1)
+        self._frame = np.stack([n, d], axis=1)  # (N1, 2, 2)
+        self._off = np.column_stack([off_n, (d * self._P).sum(1)])  # (N1, 2)
+        self._length = length
+        self._groups = self._build(max(int(group_size), 1), max(int(bucket_size), 1))
+        # padded copies: index -1 selects a row that is never a candidate
+        far = 1e12
+        self._points2_padded = np.vstack([self.points2, [[far, far]]])
+        self._frame_padded = np.concatenate([self._frame, np.zeros((1, 2, 2))])
+        self._off_padded = np.vstack([self._off, [[far, 0.0]]])
+        self._length_padded = np.r_[self._length, 0.0]
+
+    @property
+    def blocks(self) -> list[Block]:
+        """The blocks, ``(queries, keypoints)`` to compare, as a list."""
+        gr = self._groups
+        return [Block(gr.q_sorted[a:b], gr.t_sorted[c:d])
+                for a, b, c, d in zip(gr.q_start, gr.q_stop, gr.t_start, gr.t_stop)]
 
     # -- the exact test ------------------------------------------------------------
     def mask(self, queries: np.ndarray, train: np.ndarray) -> np.ndarray:
-        """``(len(queries), len(train))`` bool: is ``points2[train[j]]`` a candidate of ``queries[i]``."""
-        y = self.points2[train]
-        tol2 = self.tol * self.tol
+        """``(len(queries), len(train))`` bool: is ``points2[train[j]]`` a candidate of ``queries[i]``.
+
+        Segment: distance to the segment (a capsule) at most ``tol``. Line:
+        distance to the line at most ``tol``. Queries must have a valid
+        segment (those in :attr:`blocks` do).
+        """
+        g = len(queries)
+        proj = self._frame[queries].reshape(2 * g, 2) @ self.points2[train].T  # rows: n.y (even), d.y (odd)
+        across = proj[0::2] - self._off[queries, 0:1]
         if self.constraint == "line":
-            l = self._line[queries]
-            d = np.abs(l[:, :2] @ y.T + l[:, 2:3])
-            return (d <= self.tol) & self._ok[queries, None]
-        P, D = self._P[queries], self._Q[queries] - self._P[queries]
-        dd = np.einsum("ij,ij->i", D, D)[:, None]
-        wd = D @ y.T - np.einsum("ij,ij->i", P, D)[:, None]  # (y - P) . D
-        ww = (y * y).sum(1)[None, :] - 2.0 * (P @ y.T) + (P * P).sum(1)[:, None]  # |y - P|^2
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = np.clip(wd / dd, 0.0, 1.0)
-        u = np.where(dd > 0, u, 0.0)
-        dist2 = ww - 2.0 * u * wd + u * u * dd
-        return (dist2 <= tol2 * (1 + 1e-9) + 1e-12) & self._ok[queries, None]
+            return np.abs(across) <= self.tol
+        along = proj[1::2] - self._off[queries, 1:2]
+        over = np.maximum(-along, along - self._length[queries, None])
+        np.maximum(over, 0.0, out=over)
+        dist2 = across * across + over * over
+        return dist2 <= self.tol * self.tol * (1 + 1e-9) + 1e-12
 
     def pairs(self) -> np.ndarray:
         """All candidate pairs ``(K, 2)`` of ``(query, train)`` indices, sorted by query then train."""
@@ -173,11 +202,11 @@ class CandidateIndex:
         l = np.cross(e, yn)
         return np.mod(np.arctan2(l @ v, l @ u), np.pi), l
 
-    def _build(self, group_size: int) -> list[Block]:
+    def _build(self, group_size: int, bucket_size: int) -> "_Groups":
         n1, n2 = len(self.points1), len(self.points2)
         q_ok = np.flatnonzero(self._ok)
         if n2 == 0 or q_ok.size == 0:
-            return []
+            return _Groups.empty()
         pencil = self._pencil()
         y = self.points2
         if pencil is None:  # pure rotation: every segment is a point; one bucket, rho along x
@@ -194,7 +223,7 @@ class CandidateIndex:
             q_phi = np.mod(np.arctan2(ln @ v, ln @ u), np.pi)
             q_phi[~np.any(line != 0, axis=1)] = 0.0  # undefined line: the point is the epipole itself
             order = np.argsort(q_phi, kind="stable")
-            n_buckets = max(1, int(np.ceil(q_ok.size / (4 * group_size))))
+            n_buckets = max(1, int(np.ceil(q_ok.size / bucket_size)))
             cuts = q_phi[order][(np.arange(1, n_buckets) * q_ok.size) // n_buckets]
             edges = np.concatenate([[0.0], cuts, [np.pi]])
             # keypoints: the interval of pencil angles of lines within tol of them
@@ -242,40 +271,108 @@ class CandidateIndex:
         order_q = np.lexsort((q_lo + q_hi, q_bucket))
         q_sorted, qb, q_lo, q_hi = q_ok[order_q], q_bucket[order_q], q_lo[order_q], q_hi[order_q]
         # groups: consecutive queries of one bucket, at most group_size long
-        starts = np.flatnonzero(np.r_[True, qb[1:] != qb[:-1]])
-        first = np.concatenate([np.arange(s, e, group_size) for s, e in zip(starts, np.r_[starts[1:], len(qb)])])
+        pos = np.arange(len(qb))
+        bucket_start = np.maximum.accumulate(np.where(np.r_[True, qb[1:] != qb[:-1]], pos, 0))
+        first = np.flatnonzero((pos - bucket_start) % group_size == 0)
         g_lo = np.minimum.reduceat(q_lo, first)
         g_hi = np.maximum.reduceat(q_hi, first)
         g_b = qb[first]
         a = np.searchsorted(key_t, g_b + (g_lo / span + 0.5), side="left")
         z = np.searchsorted(key_t, g_b + (g_hi / span + 0.5), side="right")
+        keep = z > a
         bounds = np.r_[first, len(qb)]
-        return [Block(q_sorted[bounds[k]:bounds[k + 1]], t_sorted[a[k]:z[k]])
-                for k in range(len(first)) if z[k] > a[k]]
+        return _Groups(q_sorted, bounds[:-1][keep], bounds[1:][keep], t_sorted, a[keep], z[keep])
+
+    # -- batched access for the matcher -------------------------------------------------
+    def batches(self, max_elements: int = 1 << 17):
+        """Yield ``(Q, T)`` padded index arrays, ``(G, g)`` and ``(G, m)``, covering every block.
+
+        Blocks of similar width are batched together so that ``G * g * m``
+        stays near ``max_elements``; padding entries are ``-1``.
+        """
+        gr = self._groups
+        n = len(gr.q_start)
+        if n == 0:
+            return
+        g_len = gr.q_stop - gr.q_start
+        t_len = gr.t_stop - gr.t_start
+        order = np.argsort(t_len, kind="stable")
+        g = int(g_len.max())
+        k = 0
+        while k < n:
+            # widths grow along `order`, so the cost of taking blocks k..stop-1 grows with stop
+            cost = np.arange(1, n - k + 1) * g * np.maximum(t_len[order[k:]], 1)
+            over = cost > max_elements
+            stop = k + max(1, int(np.argmax(over)) if over.any() else n - k)
+            sel = order[k:stop]
+            m = int(t_len[sel].max())
+            g = int(g_len[sel].max())
+            cols = np.arange(m)
+            T = gr.t_sorted[np.minimum(gr.t_start[sel, None] + cols, len(gr.t_sorted) - 1)]
+            T[cols[None, :] >= t_len[sel, None]] = -1
+            rows = np.arange(g)
+            Q = gr.q_sorted[np.minimum(gr.q_start[sel, None] + rows, len(gr.q_sorted) - 1)]
+            Q[rows[None, :] >= g_len[sel, None]] = -1
+            yield Q, T
+            k = stop
+
+    def mask_batch(self, Q: np.ndarray, T: np.ndarray) -> np.ndarray:
+        """``(G, g, m)`` bool candidate test for padded index arrays from :meth:`batches` (-1 is never a candidate)."""
+        G, g = Q.shape
+        y = self._points2_padded[T]  # (G, m, 2)
+        proj = self._frame_padded[Q].reshape(G, 2 * g, 2) @ y.transpose(0, 2, 1)  # (G, 2g, m)
+        off = self._off_padded[Q]  # (G, g, 2)
+        across = proj[:, 0::2]
+        across -= off[:, :, 0:1]
+        if self.constraint == "line":
+            return np.abs(across, out=across) <= self.tol
+        along = proj[:, 1::2]
+        along -= off[:, :, 1:2]
+        over = along - self._length_padded[Q][:, :, None]  # beyond the far end
+        np.negative(along, out=along)  # before the near end
+        np.maximum(over, along, out=over)
+        np.maximum(over, 0.0, out=over)
+        np.square(across, out=across)
+        np.square(over, out=over)
+        across += over
+        return across <= self.tol * self.tol * (1 + 1e-9) + 1e-12
+
+
+@dataclass(frozen=True)
+class _Groups:
+    """Blocks as slices: queries ``q_sorted[q_start:q_stop]`` against keypoints ``t_sorted[t_start:t_stop]``."""
+
+    q_sorted: np.ndarray
+    q_start: np.ndarray
+    q_stop: np.ndarray
+    t_sorted: np.ndarray
+    t_start: np.ndarray
+    t_stop: np.ndarray
+
+    @staticmethod
+    def empty() -> "_Groups":
+        z = np.zeros(0, dtype=np.intp)
+        return _Groups(z, z, z, z, z, z)
 
 
 def _spread(lo: np.ndarray, hi: np.ndarray, edges: np.ndarray):
     """Assign each interval ``[lo, hi]`` (angles, ``hi`` may exceed pi) to every bucket it overlaps.
 
-    Returns ``(item, bucket)`` index arrays. Intervals that wrap past pi are
-    split in two.
+    Returns ``(item, bucket)`` index arrays, each pair once. Intervals that
+    wrap past pi are split in two.
     """
     n_b = len(edges) - 1
     hi = np.minimum(hi, lo + np.pi)
-    items, lows, highs = [np.arange(len(lo))], [lo], [np.minimum(hi, np.pi)]
-    wrap = hi > np.pi
-    if wrap.any():
-        items.append(np.flatnonzero(wrap))
-        lows.append(np.zeros(wrap.sum()))
-        highs.append(hi[wrap] - np.pi)
-    item, lo, hi = np.concatenate(items), np.concatenate(lows), np.concatenate(highs)
     k0 = np.clip(np.searchsorted(edges, lo, side="right") - 1, 0, n_b - 1)
-    k1 = np.clip(np.searchsorted(edges, hi, side="right") - 1, 0, n_b - 1)
-    count = k1 - k0 + 1
-    rep_item = np.repeat(item, count)
+    k1 = np.clip(np.searchsorted(edges, np.minimum(hi, np.pi), side="right") - 1, 0, n_b - 1)
+    items, first, last = [np.arange(len(lo))], [k0], [k1]
+    wrap = np.flatnonzero(hi > np.pi)
+    if wrap.size:  # the piece past pi continues at 0, up to (not into) the buckets already covered
+        w1 = np.clip(np.searchsorted(edges, hi[wrap] - np.pi, side="right") - 1, 0, n_b - 1)
+        items.append(wrap)
+        first.append(np.zeros(wrap.size, dtype=k0.dtype))
+        last.append(np.minimum(w1, k0[wrap] - 1))
+    item, k0, k1 = np.concatenate(items), np.concatenate(first), np.concatenate(last)
+    count = np.maximum(k1 - k0 + 1, 0)
     offsets = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
-    bucket = np.repeat(k0, count) + offsets
-    if wrap.any():  # both pieces of a wrapped interval may hit the same bucket
-        key = np.unique(rep_item * n_b + bucket)
-        rep_item, bucket = key // n_b, key % n_b
-    return rep_item, bucket
+    return np.repeat(item, count), np.repeat(k0, count) + offsets

@@ -34,6 +34,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from ._validation import as_nonnegative, as_points
 from .candidates import CandidateIndex, check_constraint
@@ -112,12 +113,21 @@ class _Distances:
 
     def scores(self, qi: np.ndarray, tj: np.ndarray) -> np.ndarray:
         """``(len(qi), len(tj))`` float32 scores, increasing with distance (squared for L2)."""
-        if self.norm == "hamming":
-            return (self.nbits - self.a[qi] @ self.b[tj].T) * np.float32(0.5)
+        return self.scores_batch(np.asarray(qi)[None], np.asarray(tj)[None])[0]
+
+    def scores_batch(self, Q: np.ndarray, T: np.ndarray) -> np.ndarray:
+        """``(G, g, m)`` float32 scores for padded index arrays ``(G, g)`` and ``(G, m)``; -1 gives row 0
+        (the caller masks those entries)."""
+        Q, T = np.maximum(Q, 0), np.maximum(T, 0)
         if self.norm == "l1":
-            return np.abs(self.a[qi][:, None, :] - self.b[tj][None, :, :]).sum(-1)
-        s = self.aa[qi][:, None] + self.bb[tj][None, :] - 2.0 * (self.a[qi] @ self.b[tj].T)
-        return np.maximum(s, 0.0, out=s)
+            return np.abs(self.a[Q][:, :, None, :] - self.b[T][:, None, :, :]).sum(-1)
+        prod = self.a[Q] @ self.b[T].transpose(0, 2, 1)
+        if self.norm == "hamming":
+            return (self.nbits - prod) * np.float32(0.5)
+        prod *= -2.0
+        prod += self.aa[Q][:, :, None]
+        prod += self.bb[T][:, None, :]
+        return np.maximum(prod, 0.0, out=prod)
 
     def to_distance(self, scores: np.ndarray) -> np.ndarray:
         return np.sqrt(scores) if self.norm == "l2" else scores
@@ -159,6 +169,8 @@ class GuidedResult:
 
 
 def _scan(index: CandidateIndex, dist: _Distances, k: int, radius: float | None = None):
+    """One pass over the candidate blocks, in padded batches: the k nearest candidates of each query,
+    the nearest query of each keypoint, and (with ``radius``) every candidate pair within it."""
     n1, n2 = len(index.points1), len(index.points2)
     idx = np.full((n1, k), -1, dtype=np.intp)
     sc = np.full((n1, k), np.inf, dtype=np.float32)
@@ -166,32 +178,61 @@ def _scan(index: CandidateIndex, dist: _Distances, k: int, radius: float | None 
     col_s = np.full(n2, np.inf, dtype=np.float32)
     col_i = np.full(n2, -1, dtype=np.intp)
     within = []
-    for blk in index.blocks:
-        q, tr = blk.queries, blk.train
-        m = index.mask(q, tr)
-        s = dist.scores(q, tr).astype(np.float32, copy=False)
-        s[~m] = np.inf
-        counts[q] = m.sum(1)
-        if radius is not None:
-            r, c = np.nonzero(m & (s <= radius))
-            within.append((q[r], tr[c], s[r, c]))
-        kk = min(k, len(tr))
-        if kk < len(tr):
-            part = np.argpartition(s, kk - 1, axis=1)[:, :kk]
-        else:
-            part = np.broadcast_to(np.arange(kk), (len(q), kk))
-        ps = np.take_along_axis(s, part, axis=1)
-        o = np.argsort(ps, axis=1, kind="stable")
-        ps, part = np.take_along_axis(ps, o, axis=1), np.take_along_axis(part, o, axis=1)
-        sc[q, :kk] = ps
-        idx[q, :kk] = np.where(np.isfinite(ps), tr[part], -1)
-        # nearest query of each keypoint, over this block
-        rbest = np.argmin(s, axis=0)
-        cbest = s[rbest, np.arange(len(tr))]
-        better = cbest < col_s[tr]
-        col_s[tr[better]] = cbest[better]
-        col_i[tr[better]] = q[rbest[better]]
+    # The blocks are small: BLAS threads only add overhead there (and stall badly on a busy machine).
+    with threadpool_limits(1, user_api="blas"):
+        for Q, T in index.batches():
+            m = index.mask_batch(Q, T)  # (G, g, w)
+            s = dist.scores_batch(Q, T)
+            np.copyto(s, np.inf, where=~m)
+            q_ok = Q >= 0
+            counts[Q[q_ok]] = m.sum(2)[q_ok]
+            if radius is not None:
+                b, r, c = np.nonzero(m & (s <= radius))
+                within.append((Q[b, r], T[b, c], s[b, r, c]))
+            _column_best(s, Q, T, col_s, col_i)
+            _top_k(s, Q, T, k, idx, sc)
     return GuidedResult(idx, sc, counts, col_i), within
+
+
+def _column_best(s, Q, T, col_s, col_i):
+    """Update the nearest query (``col_i``, score ``col_s``) of every keypoint in ``T``."""
+    r = np.argmin(s, axis=1)  # (G, w)
+    v = np.take_along_axis(s, r[:, None, :], axis=1)[:, 0, :]
+    ok = np.isfinite(v)
+    t, v, q = T[ok], v[ok], np.take_along_axis(Q, r, axis=1)[ok]
+    # a keypoint may sit in several blocks of the batch: keep its best first
+    o = np.lexsort((v, t))
+    t, v, q = t[o], v[o], q[o]
+    first = np.r_[True, t[1:] != t[:-1]]
+    t, v, q = t[first], v[first], q[first]
+    better = v < col_s[t]
+    col_s[t[better]] = v[better]
+    col_i[t[better]] = q[better]
+
+
+def _top_k(s, Q, T, k, idx, sc):
+    """Write the ``k`` smallest entries of each row of ``s`` (nearest first) into ``idx``/``sc`` at rows ``Q``."""
+    ok = Q >= 0
+    q = Q[ok]
+    kk = min(k, s.shape[2])
+    if kk <= 2:  # repeated argmin beats a partition for the common k = 1, 2
+        for col in range(kk):
+            j = np.argmin(s, axis=2)  # (G, g)
+            v = np.take_along_axis(s, j[:, :, None], axis=2)[:, :, 0]
+            t = np.take_along_axis(T, j, axis=1)
+            sc[q, col] = v[ok]
+            idx[q, col] = np.where(np.isfinite(v), t, -1)[ok]
+            if col + 1 < kk:
+                np.put_along_axis(s, j[:, :, None], np.inf, axis=2)
+        return
+    part = np.argpartition(s, kk - 1, axis=2)[:, :, :kk] if kk < s.shape[2] else \
+        np.broadcast_to(np.arange(kk), s.shape[:2] + (kk,))
+    ps = np.take_along_axis(s, part, axis=2)
+    o = np.argsort(ps, axis=2, kind="stable")
+    ps, part = np.take_along_axis(ps, o, axis=2), np.take_along_axis(part, o, axis=2)
+    t = np.take_along_axis(np.broadcast_to(T[:, None, :], s.shape), part, axis=2)
+    sc[q, :kk] = ps[ok]
+    idx[q, :kk] = np.where(np.isfinite(ps), t, -1)[ok]
 
 
 def _prepare(descriptors1, descriptors2, points1, points2, geometry, norm, tol, constraint):
@@ -279,7 +320,7 @@ def radius_descriptors(descriptors1, descriptors2, points1, points2, geometry, *
 
 def match_descriptors(descriptors1, descriptors2, points1, points2, geometry, *, norm="l2", tol=2.0,
                       depth_range=(0.0, np.inf), constraint="segment", ratio=DEFAULT_RATIO, mutual=True,
-                      pad=DEFAULT_PAD, cross_check=False, rng=0, group_size=32):
+                      pad=DEFAULT_PAD, cross_check=False, rng=0, group_size=32, bucket_size=128):
     """Match descriptors, comparing each query only with the keypoints on its epipolar segment.
 
     Parameters
@@ -330,7 +371,7 @@ def match_descriptors(descriptors1, descriptors2, points1, points2, geometry, *,
         raise ValueError("match_descriptors needs constraint 'segment' or 'line'; use cv2.BFMatcher for 'none'")
     dist = _Distances(d1, d2, norm)
     index = CandidateIndex(geometry, p1, p2, tol=tol, depth_range=depth_range, constraint=constraint,
-                           group_size=group_size)
+                           group_size=group_size, bucket_size=bucket_size)
     res, _ = _scan(index, dist, 2)
     i = np.flatnonzero(res.indices[:, 0] >= 0)
     j = res.indices[i, 0]
