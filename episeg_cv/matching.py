@@ -40,7 +40,7 @@ from ._validation import as_nonnegative, as_points
 from .candidates import CandidateIndex, check_constraint
 from .geometry import Rejection, TwoViewGeometry
 
-__all__ = ["match_descriptors", "knn_descriptors", "radius_descriptors", "filter_pairs", "explain_pairs",
+__all__ = ["match_descriptors", "guided_matches", "GuidedMatches", "knn_descriptors", "radius_descriptors", "filter_pairs", "explain_pairs",
            "GuidedResult", "DEFAULT_RATIO", "DEFAULT_PAD"]
 
 #: Default ratio of the acceptance rule (chosen on the benchmark).
@@ -64,13 +64,17 @@ def check_descriptors(descriptors1, descriptors2, norm: str, names=("descriptors
     """Validate a pair of descriptor arrays against each other and the norm; returns them as arrays."""
     out = []
     for name, d in zip(names, (descriptors1, descriptors2)):
-        if d is None:
-            d = np.zeros((0, 0), dtype=np.float32)
+        if d is None:  # what cv2 detectors return for no keypoints
+            other = descriptors2 if name == names[0] else descriptors1
+            other = np.asarray(other) if other is not None else np.zeros((0, 0), np.float32)
+            d = np.zeros((0, other.shape[1] if other.ndim == 2 else 0), dtype=other.dtype)
         d = np.asarray(d)
         if d.dtype not in (np.float32, np.float64, np.uint8):
             raise TypeError(f"{name} must be float32 or uint8 (as OpenCV's detectors give), got dtype {d.dtype}")
         if d.size == 0:
             d = d.reshape(0, d.shape[1] if d.ndim == 2 else 0)
+            if norm == "hamming":
+                d = d.astype(np.uint8)
         if d.ndim != 2:
             raise ValueError(f"{name} must have shape (N, D), got shape {d.shape}")
         if d.dtype != np.uint8 and d.size and not np.all(np.isfinite(d)):
@@ -235,9 +239,13 @@ def _top_k(s, Q, T, k, idx, sc):
     idx[q, :kk] = np.where(np.isfinite(ps), t, -1)[ok]
 
 
-def _prepare(descriptors1, descriptors2, points1, points2, geometry, norm, tol, constraint):
+def _check_geometry(geometry):
     if not isinstance(geometry, TwoViewGeometry):
         raise TypeError(f"geometry must be a TwoViewGeometry, got {type(geometry).__name__}")
+
+
+def _prepare(descriptors1, descriptors2, points1, points2, geometry, norm, tol, constraint):
+    _check_geometry(geometry)
     norm = check_norm(norm)
     constraint = check_constraint(constraint)
     tol = as_nonnegative(tol, "tol")
@@ -318,6 +326,84 @@ def radius_descriptors(descriptors1, descriptors2, points1, points2, geometry, *
     return np.column_stack([i[o], j[o]]).astype(np.intp), d[o]
 
 
+@dataclass(frozen=True)
+class GuidedMatches:
+    """Every query's nearest candidate, with what the acceptance rule thresholds on.
+
+    Attributes
+    ----------
+    pairs : (K, 2) intp
+        ``(i1, i2)``: each query with at least one candidate and its nearest one, sorted by ``i1``.
+    distances : (K,) float32
+        Their descriptor distances, as ``cv2`` reports them.
+    ratio : (K,) float64
+        ``d1 / d2``, with ``d2`` the distance to the second reference
+        descriptor (second candidate, or nearest random pad keypoint); 0 when
+        there is none.
+    mutual : (K,) bool
+        The query is also the nearest to its keypoint (within the candidate
+        relation, or both directions with ``cross_check``).
+    candidates : (N1,) intp
+        Number of candidates of every query.
+    """
+
+    pairs: np.ndarray
+    distances: np.ndarray
+    ratio: np.ndarray
+    mutual: np.ndarray
+    candidates: np.ndarray
+
+    def accept(self, ratio: float = DEFAULT_RATIO, mutual: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """The matches kept by the rule: ``(pairs, distances)``. ``ratio = 1`` disables the ratio test."""
+        keep = (self.ratio < ratio) if ratio < 1 else np.ones(len(self.pairs), dtype=bool)
+        if mutual:
+            keep &= self.mutual
+        return self.pairs[keep], self.distances[keep]
+
+
+def guided_matches(descriptors1, descriptors2, points1, points2, geometry, *, norm="l2", tol=2.0,
+                   depth_range=(0.0, np.inf), constraint="segment", pad=DEFAULT_PAD, cross_check=False, rng=0,
+                   group_size=32, bucket_size=128) -> GuidedMatches:
+    """Nearest candidate of every query on its segment (or line), with its ratio and mutual flags.
+
+    The thresholds of :func:`match_descriptors` are then a cheap filter
+    (:meth:`GuidedMatches.accept`), which is how ``benchmarks/compare.py``
+    sweeps precision-recall curves. Parameters as in :func:`match_descriptors`.
+    """
+    d1, d2, p1, p2, norm, constraint, tol = _prepare(descriptors1, descriptors2, points1, points2,
+                                                    geometry, norm, tol, constraint)
+    if isinstance(pad, (bool, np.bool_)) or not isinstance(pad, (int, np.integer)) or pad < 0:
+        raise ValueError(f"pad must be an integer >= 0, got {pad!r}")
+    if constraint == "none":
+        raise ValueError("guided matching needs constraint 'segment' or 'line'; use cv2.BFMatcher for 'none'")
+    dist = _Distances(d1, d2, norm)
+    index = CandidateIndex(geometry, p1, p2, tol=tol, depth_range=depth_range, constraint=constraint,
+                           group_size=group_size, bucket_size=bucket_size)
+    res, _ = _scan(index, dist, 2)
+    i = np.flatnonzero(res.indices[:, 0] >= 0)
+    j = res.indices[i, 0]
+    s1, s2 = res.scores[i, 0], res.scores[i, 1]
+    n_pad = min(int(pad), len(p2))
+    if n_pad and len(i):
+        pad_j = np.sort(np.random.default_rng(rng).choice(len(p2), n_pad, replace=False))
+        with threadpool_limits(1, user_api="blas"):
+            ps = dist.scores(i, pad_j)
+        ps[pad_j[None, :] == j[:, None]] = np.inf
+        s2 = np.minimum(s2, ps.min(axis=1))
+    d1_, d2_ = dist.to_distance(s1.astype(np.float64)), dist.to_distance(s2.astype(np.float64))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.where(np.isfinite(d2_), np.where(d2_ > 0, d1_ / d2_, np.where(d1_ > 0, np.inf, 1.0)), 0.0)
+    if cross_check:
+        # bounds on z1 are not bounds on z2: the reverse pass uses the whole half-line (0, inf)
+        back = CandidateIndex(geometry.inverse(), p2, p1, tol=tol, constraint=constraint, group_size=group_size,
+                              bucket_size=bucket_size)
+        rev, _ = _scan(back, _Distances(d2, d1, norm), 1)
+        mutual = rev.indices[j, 0] == i
+    else:
+        mutual = res.column_best[j] == i
+    return GuidedMatches(np.column_stack([i, j]).astype(np.intp), dist.exact(i, j), ratio, mutual, res.counts)
+
+
 def match_descriptors(descriptors1, descriptors2, points1, points2, geometry, *, norm="l2", tol=2.0,
                       depth_range=(0.0, np.inf), constraint="segment", ratio=DEFAULT_RATIO, mutual=True,
                       pad=DEFAULT_PAD, cross_check=False, rng=0, group_size=32, bucket_size=128):
@@ -336,10 +422,12 @@ def match_descriptors(descriptors1, descriptors2, points1, points2, geometry, *,
     pad : int, optional
         Random keypoints of image 2 added to the ratio test's references (0 for none).
     cross_check : bool, optional
-        Mutual nearest neighbour in both directions, the reverse one with
-        ``geometry.inverse()`` (its own segments in image 1). Replaces ``mutual``.
+        With ``mutual``, check it in both directions, the reverse one with
+        ``geometry.inverse()`` (its own segments in image 1).
     rng : int or numpy.random.Generator, optional
         Seed for the padding draw (fixed by default, so results repeat).
+    group_size, bucket_size : int, optional
+        Block shape of the candidate index (speed only; results do not change).
 
     Returns
     -------
@@ -361,41 +449,12 @@ def match_descriptors(descriptors1, descriptors2, points1, points2, geometry, *,
     >>> pairs.tolist(), dist.tolist()
     ([[0, 0]], [0.0])
     """
-    d1, d2, p1, p2, norm, constraint, tol = _prepare(descriptors1, descriptors2, points1, points2,
-                                                    geometry, norm, tol, constraint)
     if isinstance(ratio, (bool, np.bool_)) or not isinstance(ratio, (int, float, np.floating)) or not 0 < ratio <= 1:
         raise ValueError(f"ratio must be in (0, 1], got {ratio!r}")
-    if isinstance(pad, (bool, np.bool_)) or not isinstance(pad, (int, np.integer)) or pad < 0:
-        raise ValueError(f"pad must be an integer >= 0, got {pad!r}")
-    if constraint == "none":
-        raise ValueError("match_descriptors needs constraint 'segment' or 'line'; use cv2.BFMatcher for 'none'")
-    dist = _Distances(d1, d2, norm)
-    index = CandidateIndex(geometry, p1, p2, tol=tol, depth_range=depth_range, constraint=constraint,
-                           group_size=group_size, bucket_size=bucket_size)
-    res, _ = _scan(index, dist, 2)
-    i = np.flatnonzero(res.indices[:, 0] >= 0)
-    j = res.indices[i, 0]
-    s1, s2 = res.scores[i, 0], res.scores[i, 1]
-    n_pad = min(int(pad), len(p2))
-    if n_pad and len(i):
-        pad_j = np.sort(np.random.default_rng(rng).choice(len(p2), n_pad, replace=False))
-        ps = dist.scores(i, pad_j)
-        ps[pad_j[None, :] == j[:, None]] = np.inf
-        s2 = np.minimum(s2, ps.min(axis=1))
-    if ratio < 1:
-        r = ratio * ratio if norm == "l2" else ratio
-        keep = s1 < r * s2
-        i, j = i[keep], j[keep]
-    if cross_check:
-        # bounds on z1 are not bounds on z2: the reverse pass uses the whole half-line (0, inf)
-        back = CandidateIndex(geometry.inverse(), p2, p1, tol=tol, constraint=constraint, group_size=group_size)
-        rev, _ = _scan(back, _Distances(d2, d1, norm), 1)
-        keep = rev.indices[j, 0] == i
-        i, j = i[keep], j[keep]
-    elif mutual:
-        keep = res.column_best[j] == i
-        i, j = i[keep], j[keep]
-    return np.column_stack([i, j]).astype(np.intp), dist.exact(i, j)
+    gm = guided_matches(descriptors1, descriptors2, points1, points2, geometry, norm=norm, tol=tol,
+                        depth_range=depth_range, constraint=constraint, pad=pad, cross_check=cross_check, rng=rng,
+                        group_size=group_size, bucket_size=bucket_size)
+    return gm.accept(ratio, mutual or cross_check)
 
 
 def filter_pairs(pairs, points1, points2, geometry, *, tol=2.0, depth_range=(0.0, np.inf), constraint="segment"):
@@ -422,6 +481,7 @@ def filter_pairs(pairs, points1, points2, geometry, *, tol=2.0, depth_range=(0.0
     ValueError
         A pair index out of range, or other bad input.
     """
+    _check_geometry(geometry)
     constraint = check_constraint(constraint)
     tol = as_nonnegative(tol, "tol")
     pairs, p1, p2 = _check_pairs(pairs, points1, points2)
@@ -437,7 +497,7 @@ def _check_pairs(pairs, points1, points2):
     p1, p2 = as_points(points1, "points1"), as_points(points2, "points2")
     arr = np.asarray(pairs)
     if arr.size == 0:
-        arr = arr.reshape(0, 2)
+        arr = np.zeros((0, 2), dtype=np.intp)
     if arr.ndim != 2 or arr.shape[1] != 2 or not (np.issubdtype(arr.dtype, np.integer)):
         raise ValueError(f"pairs must be a (K, 2) integer array, got shape {arr.shape} and dtype {arr.dtype}")
     for col, n, name in ((0, len(p1), "points1"), (1, len(p2), "points2")):
@@ -468,6 +528,7 @@ def explain_pairs(pairs, points1, points2, geometry, *, tol=2.0, depth_range=(0.
     >>> counts["on_segment"], counts["beyond_infinity"], counts["off_line"]
     (1, 1, 1)
     """
+    _check_geometry(geometry)
     tol = as_nonnegative(tol, "tol")
     pairs, p1, p2 = _check_pairs(pairs, points1, points2)
     seg = geometry.segments(p1, depth_range, margin=tol).take(pairs[:, 0])

@@ -133,6 +133,10 @@ class SegmentMatcher:
     def _bf(self):
         return cv2.BFMatcher(self.normType, self.crossCheck)
 
+    @staticmethod
+    def _cv(d):  # cv2 takes float32 or uint8 only
+        return d.astype(np.float32) if d.dtype == np.float64 else d
+
     # -- the cv2.BFMatcher API -----------------------------------------------------------
     def match(self, queryDescriptors, trainDescriptors, queryKeypoints, trainKeypoints) -> list:
         """Accepted matches, one at most per query, as ``list[cv2.DMatch]`` (``imgIdx = 0``)."""
@@ -140,7 +144,7 @@ class SegmentMatcher:
         if len(d1) == 0 or len(d2) == 0:
             return []
         if self.constraint == "none":
-            return list(self._bf().match(d1, d2))
+            return list(self._bf().match(self._cv(d1), self._cv(d2)))
         pairs, dist = match_descriptors(d1, d2, p1, p2, self.geometry, ratio=self.ratio, mutual=self.mutual,
                                         pad=self.pad, cross_check=self.crossCheck, **self._kw())
         return _to_dmatches(pairs, dist)
@@ -156,7 +160,7 @@ class SegmentMatcher:
         if len(d2) == 0:
             return [[] for _ in range(len(d1))]
         if self.constraint == "none":
-            return [list(m) for m in self._bf().knnMatch(d1, d2, k=k)]
+            return [list(m) for m in self._bf().knnMatch(self._cv(d1), self._cv(d2), k=k)]
         if self.crossCheck:
             pairs, dist = match_descriptors(d1, d2, p1, p2, self.geometry, ratio=1.0, mutual=False, pad=0,
                                             cross_check=True, **self._kw())
@@ -181,7 +185,7 @@ class SegmentMatcher:
         if len(d2) == 0:
             return [[] for _ in range(len(d1))]
         if self.constraint == "none":
-            return [list(m) for m in self._bf().radiusMatch(d1, d2, max_distance)]
+            return [list(m) for m in self._bf().radiusMatch(self._cv(d1), self._cv(d2), max_distance)]
         pairs, dist = radius_descriptors(d1, d2, p1, p2, self.geometry, max_distance=max_distance, **self._kw())
         out = [[] for _ in range(len(d1))]
         for m in _to_dmatches(pairs, dist):
