@@ -12,7 +12,8 @@ import numpy as np
 from ._validation import as_depth_range, as_nonnegative, as_points
 from .candidates import check_constraint
 from .geometry import TwoViewGeometry
-from .matching import (DEFAULT_PAD, DEFAULT_RATIO, _check_k, _Distances, check_descriptors, check_norm,
+from .matching import (DEFAULT_PAD, DEFAULT_RATIO, _check_k, _Distances, check_descriptors,
+                       check_norm, check_ratio,
                        explain_pairs, filter_pairs, knn_descriptors, match_descriptors, radius_descriptors)
 
 __all__ = ["SegmentMatcher", "keypoints_to_array"]
@@ -63,7 +64,7 @@ class SegmentMatcher:
         ``"segment"`` (ours), ``"line"`` (plain epipolar filtering, same code
         path) or ``"none"`` (exactly ``cv2.BFMatcher``).
     ratio, mutual, pad
-        The acceptance rule of :meth:`match`; see
+        The acceptance rule of :meth:`match` (defaults chosen on the benchmark); see
         :func:`episeg_cv.matching.match_descriptors`. They do not apply to
         ``constraint="none"``, which returns what ``cv2.BFMatcher.match`` does.
 
@@ -104,11 +105,11 @@ class SegmentMatcher:
         as_depth_range(depth_range, None)  # per-point arrays are checked against N at each call
         self.depth_range = depth_range
         self.constraint = check_constraint(constraint)
-        if isinstance(ratio, (bool, np.bool_)) or not isinstance(ratio, (int, float, np.floating)) or not 0 < ratio <= 1:
-            raise ValueError(f"ratio must be in (0, 1], got {ratio!r}")
-        self.ratio = float(ratio)
+        self.ratio = check_ratio(ratio, "ratio")
         self.mutual = bool(mutual)
-        self.pad = pad
+        if isinstance(pad, (bool, np.bool_)) or not isinstance(pad, (int, np.integer)) or pad < 0:
+            raise ValueError(f"pad must be an integer >= 0, got {pad!r}")
+        self.pad = int(pad)
 
     def __repr__(self) -> str:
         return (f"SegmentMatcher(normType={self.normType}, crossCheck={self.crossCheck}, tol={self.tol}, "
