@@ -95,7 +95,7 @@ class CandidateIndex:
 
     def __init__(self, geometry: TwoViewGeometry, points1, points2, *, tol: float = 2.0,
                  depth_range=(0.0, np.inf), constraint: str = "segment", group_size: int = 32,
-                 bucket_size: int = 128):
+                 bucket_size: int = 64):
         if not isinstance(geometry, TwoViewGeometry):
             raise TypeError(f"geometry must be a TwoViewGeometry, got {type(geometry).__name__}")
         constraint = check_constraint(constraint)
@@ -197,10 +197,18 @@ class CandidateIndex:
         return e, u, np.cross(e, u)
 
     def _phi_of_points(self, e, u, v, y):
-        """Pencil angle in ``[0, pi)`` of the line through the epipole and each pixel ``y``."""
-        yn = np.column_stack([(y - self._c) / self._s, np.ones(len(y))])
-        l = np.cross(e, yn)
-        return np.mod(np.arctan2(l @ v, l @ u), np.pi), l
+        """Pencil angle in ``[0, pi)`` of the line through the epipole and each pixel ``y``, and that line.
+
+        The line is ``l = e x (yn, 1)`` in normalised coordinates ``yn = (y - c) / s``.
+        """
+        y0 = (y[:, 0] - self._c[0]) / self._s
+        y1 = (y[:, 1] - self._c[1]) / self._s
+        l0 = e[1] - e[2] * y1
+        l1 = e[2] * y0 - e[0]
+        l2 = e[0] * y1 - e[1] * y0
+        a = l0 * u[0] + l1 * u[1] + l2 * u[2]
+        b = l0 * v[0] + l1 * v[1] + l2 * v[2]
+        return np.mod(np.arctan2(b, a), np.pi), (l0, l1)
 
     def _build(self, group_size: int, bucket_size: int) -> "_Groups":
         n1, n2 = len(self.points1), len(self.points2)
@@ -227,8 +235,8 @@ class CandidateIndex:
             cuts = q_phi[order][(np.arange(1, n_buckets) * q_ok.size) // n_buckets]
             edges = np.concatenate([[0.0], cuts, [np.pi]])
             # keypoints: the interval of pencil angles of lines within tol of them
-            phi_y, ly = self._phi_of_points(e, u, v, y)
-            normal = ly[:, :2] / np.maximum(np.hypot(ly[:, 0], ly[:, 1]), 1e-300)[:, None]
+            phi_y, (l0, l1) = self._phi_of_points(e, u, v, y)
+            normal = np.column_stack([l0, l1]) / np.maximum(np.hypot(l0, l1), 1e-300)[:, None]
             with np.errstate(divide="ignore", invalid="ignore"):
                 # tol / r, with r the pixel distance from y to the epipole (0 at infinity)
                 ratio = (self.tol / self._s) * abs(e[2]) / np.hypot(e[0] - (y[:, 0] - self._c[0]) / self._s * e[2],

@@ -26,11 +26,13 @@ single candidate through: on a prototype, precision fell from 0.95 to 0.73.
 The random padding (Theia pads guided matching the same way) gives every
 query a reference that does not depend on how many candidates it has, at the
 cost of one ``N1 x pad`` product instead of the ``N1 x N2`` global second
-neighbour. The defaults, mutual, ``ratio = 0.72`` and ``pad = 256``, were
+neighbour. The defaults, mutual, ``ratio = 0.68`` and ``pad = 128``, were
 chosen on the precision-recall benchmark (``benchmarks/compare.py``, see
 ``benchmarks/results/compare.md``): of the rules tried it had the most
-correct matches at 95 % and 99 % precision, and 0.72 is the largest ratio
-that keeps precision at or above 0.95 on every scene and on Motorcycle.
+correct matches at 95 % precision and, after the exact global second
+neighbour, at 99 %. The largest ratio that keeps precision at or above 0.95
+on every scene and on Motorcycle is 0.69; the default is one step (0.01)
+below it, for margin.
 """
 
 from __future__ import annotations
@@ -49,9 +51,9 @@ __all__ = ["match_descriptors", "guided_matches", "GuidedMatches", "knn_descript
            "GuidedResult", "DEFAULT_RATIO", "DEFAULT_PAD"]
 
 #: Default ratio of the acceptance rule (chosen on the benchmark).
-DEFAULT_RATIO = 0.72
+DEFAULT_RATIO = 0.68
 #: Default number of random reference descriptors for the ratio test.
-DEFAULT_PAD = 256
+DEFAULT_PAD = 128
 
 _NORMS = {cv2.NORM_L1: "l1", cv2.NORM_L2: "l2", cv2.NORM_L2SQR: "l2sqr", cv2.NORM_HAMMING: "hamming",
           "l1": "l1", "l2": "l2", "l2sqr": "l2sqr", "hamming": "hamming"}
@@ -122,6 +124,12 @@ class _Distances:
 
     def scores(self, qi: np.ndarray, tj: np.ndarray) -> np.ndarray:
         """``(len(qi), len(tj))`` float32 scores, increasing with distance (squared for L2)."""
+        if self.norm in ("l2", "l2sqr"):  # one 2-D product over all rows, then the rows asked for
+            prod = (self.a @ self.b[tj].T)[qi]
+            prod *= -2.0
+            prod += self.aa[qi][:, None]
+            prod += self.bb[tj][None, :]
+            return np.maximum(prod, 0.0, out=prod)
         return self.scores_batch(np.asarray(qi)[None], np.asarray(tj)[None])[0]
 
     def scores_batch(self, Q: np.ndarray, T: np.ndarray) -> np.ndarray:
@@ -147,11 +155,12 @@ class _Distances:
             return np.zeros(0, dtype=np.float32)
         if self.norm == "hamming":
             return np.unpackbits(self.raw1[i] ^ self.raw2[j], axis=1).sum(1).astype(np.float32)
-        diff = self.raw1[i].astype(np.float64) - self.raw2[j].astype(np.float64)
+        # float32 arithmetic, as cv2 does (uint8 descriptors are widened first)
+        diff = np.asarray(self.raw1[i], dtype=np.float32) - np.asarray(self.raw2[j], dtype=np.float32)
         if self.norm == "l1":
-            return np.abs(diff).sum(1).astype(np.float32)
+            return np.abs(diff).sum(1, dtype=np.float32)
         sq = np.einsum("ij,ij->i", diff, diff)
-        return (np.sqrt(sq) if self.norm == "l2" else sq).astype(np.float32)
+        return np.sqrt(sq) if self.norm == "l2" else sq
 
 
 @dataclass(frozen=True)
@@ -209,14 +218,10 @@ def _column_best(s, Q, T, col_s, col_i):
     v = np.take_along_axis(s, r[:, None, :], axis=1)[:, 0, :]
     ok = np.isfinite(v)
     t, v, q = T[ok], v[ok], np.take_along_axis(Q, r, axis=1)[ok]
-    # a keypoint may sit in several blocks of the batch: keep its best first
-    o = np.lexsort((v, t))
-    t, v, q = t[o], v[o], q[o]
-    first = np.r_[True, t[1:] != t[:-1]]
-    t, v, q = t[first], v[first], q[first]
-    better = v < col_s[t]
-    col_s[t[better]] = v[better]
-    col_i[t[better]] = q[better]
+    # a keypoint may sit in several blocks of the batch: take the minimum, then its query
+    np.minimum.at(col_s, t, v)
+    won = v == col_s[t]
+    col_i[t[won]] = q[won]
 
 
 def _top_k(s, Q, T, k, idx, sc):
@@ -371,7 +376,7 @@ class GuidedMatches:
 
 def guided_matches(descriptors1, descriptors2, points1, points2, geometry, *, norm="l2", tol=2.0,
                    depth_range=(0.0, np.inf), constraint="segment", pad=DEFAULT_PAD, cross_check=False, rng=0,
-                   group_size=32, bucket_size=128) -> GuidedMatches:
+                   group_size=32, bucket_size=64) -> GuidedMatches:
     """Nearest candidate of every query on its segment (or line), with its ratio and mutual flags.
 
     The thresholds of :func:`match_descriptors` are then a cheap filter
@@ -417,7 +422,7 @@ def _ratio(d1: np.ndarray, d2: np.ndarray) -> np.ndarray:
 
 def match_descriptors(descriptors1, descriptors2, points1, points2, geometry, *, norm="l2", tol=2.0,
                       depth_range=(0.0, np.inf), constraint="segment", ratio=DEFAULT_RATIO, mutual=True,
-                      pad=DEFAULT_PAD, cross_check=False, rng=0, group_size=32, bucket_size=128):
+                      pad=DEFAULT_PAD, cross_check=False, rng=0, group_size=32, bucket_size=64):
     """Match descriptors, comparing each query only with the keypoints on its epipolar segment.
 
     Parameters
