@@ -42,6 +42,7 @@ from _common import machine_metadata  # noqa: E402
 
 from episeg_cv import CandidateIndex, SegmentMatcher, filter_pairs, match_descriptors  # noqa: E402
 from episeg_cv import scenes  # noqa: E402
+from episeg_cv.matching import DEFAULT_PAD, DEFAULT_RATIO  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 SCRIPT = "benchmarks/speed.py"
@@ -69,7 +70,8 @@ METHODS = {
                     f"`cv2.FlannBasedMatcher` (KD-tree, {FLANN_INDEX['trees']} trees, {FLANN_SEARCH['checks']} "
                     f"checks; the index is built in each call) `knnMatch(k=2)`, then ratio {RATIO}: the fast peer"),
     "segment_match": ("SegmentMatcher segment: match", "`SegmentMatcher(geometry, cv2.NORM_L2, "
-                      "constraint=\"segment\").match(d1, d2, kp1, kp2)` (ratio 0.8 with padding, mutual)"),
+                      "constraint=\"segment\").match(d1, d2, kp1, kp2)` "
+                      f"(the default rule: mutual + ratio {DEFAULT_RATIO}, pad {DEFAULT_PAD})"),
     "segment_knn": ("SegmentMatcher segment: knnMatch(k=2)", "`SegmentMatcher(..., constraint=\"segment\")"
                     ".knnMatch(d1, d2, kp1, kp2, k=2)` (raw neighbours, like BFMatcher's)"),
     "line_match": ("SegmentMatcher line: match", "the same with `constraint=\"line\"`"),

@@ -45,7 +45,7 @@ from threadpoolctl import threadpool_limits
 
 from ._validation import as_nonnegative, as_points
 from .candidates import CandidateIndex, check_constraint
-from .geometry import Rejection, TwoViewGeometry
+from .geometry import Rejection, TwoViewGeometry, _point_segment_distance
 
 __all__ = ["match_descriptors", "guided_matches", "GuidedMatches", "knn_descriptors", "radius_descriptors", "filter_pairs", "explain_pairs",
            "GuidedResult", "DEFAULT_RATIO", "DEFAULT_PAD"]
@@ -509,10 +509,14 @@ def filter_pairs(pairs, points1, points2, geometry, *, tol=2.0, depth_range=(0.0
     pairs, p1, p2 = _check_pairs(pairs, points1, points2)
     if constraint == "none":
         return np.ones(len(pairs), dtype=bool)
-    seg = geometry.segments(p1, depth_range, margin=tol).take(pairs[:, 0])
-    y = p2[pairs[:, 1]]
-    d = seg.distance(y) if constraint == "segment" else seg.line_distance(y)
-    return d <= tol
+    seg = geometry.segments(p1, depth_range, margin=tol)
+    i, y = pairs[:, 0], p2[pairs[:, 1]]
+    if constraint == "line":
+        line = seg.line[i]
+        with np.errstate(invalid="ignore"):
+            return np.abs(line[:, 0] * y[:, 0] + line[:, 1] * y[:, 1] + line[:, 2]) <= tol  # NaN line: False
+    d = _point_segment_distance(y, np.nan_to_num(seg.start)[i], np.nan_to_num(seg.end)[i])
+    return seg.valid[i] & (d <= tol)
 
 
 def _check_pairs(pairs, points1, points2):
