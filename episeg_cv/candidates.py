@@ -258,9 +258,8 @@ class CandidateIndex:
             q_bucket = np.clip(np.searchsorted(edges, q_phi, side="right") - 1, 0, len(edges) - 2)
             dirs = np.column_stack([-line[:, 1], line[:, 0]])
             ang2 = 2 * np.arctan2(dirs[:, 1], dirs[:, 0])
-            cs = np.zeros((len(edges) - 1, 2))
-            np.add.at(cs, q_bucket, np.column_stack([np.cos(ang2), np.sin(ang2)]))
-            half = 0.5 * np.arctan2(cs[:, 1], cs[:, 0])
+            n_b = len(edges) - 1
+            half = 0.5 * np.arctan2(np.bincount(q_bucket, np.sin(ang2), n_b), np.bincount(q_bucket, np.cos(ang2), n_b))
             directions = np.column_stack([np.cos(half), np.sin(half)])
 
         n_b = len(edges) - 1

@@ -33,6 +33,7 @@ for the fundamental matrix, and sec. 21 (p. 515) for cheirality.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -158,15 +159,40 @@ class EpipolarSegments:
     line: np.ndarray
     infinity_point: np.ndarray
     epipole: np.ndarray
-    line_start: np.ndarray
-    line_end: np.ndarray
     margin: float
     _a: np.ndarray  # (N, 3) homogeneous p_inf
     _b: np.ndarray  # (3,) homogeneous epipole
+    _rect: tuple  # (xmin, xmax, ymin, ymax) of the clipping rectangle
 
     def __post_init__(self):
-        for f in ("start", "end", "valid", "line", "infinity_point", "epipole", "line_start", "line_end", "_a", "_b"):
+        for f in ("start", "end", "valid", "line", "infinity_point", "epipole", "_a", "_b"):
             getattr(self, f).flags.writeable = False
+
+    @cached_property
+    def _line_clip(self) -> tuple[np.ndarray, np.ndarray]:
+        # computed on first use: guided matching on the segment never needs it
+        line = self.line
+        n = len(line)
+        p0 = -line[:, 2:3] * line[:, :2]  # the whole line, p0 + s d with s in R
+        d = np.column_stack([-line[:, 1], line[:, 0]])
+        L0 = np.column_stack([p0, np.ones(n)])
+        L1 = np.column_stack([p0 + d, np.ones(n)])
+        lo, hi, ok = _clip(np.nan_to_num(L0), np.nan_to_num(L1), -np.inf, np.inf, self._rect)
+        ok &= np.all(np.isfinite(line), axis=1)
+        start = np.where(ok[:, None], p0 + lo[:, None] * d, np.nan)
+        end = np.where(ok[:, None], p0 + hi[:, None] * d, np.nan)
+        start.flags.writeable = end.flags.writeable = False
+        return start, end
+
+    @property
+    def line_start(self) -> np.ndarray:
+        """(N, 2) one end of the whole epipolar line clipped to the rectangle; NaN if it misses."""
+        return self._line_clip[0]
+
+    @property
+    def line_end(self) -> np.ndarray:
+        """(N, 2) the other end of the clipped epipolar line; NaN if it misses."""
+        return self._line_clip[1]
 
     def __len__(self) -> int:
         return self.start.shape[0]
@@ -197,7 +223,7 @@ class EpipolarSegments:
         idx = np.asarray(indices, dtype=np.intp)
         return EpipolarSegments(
             self.start[idx], self.end[idx], self.valid[idx], self.line[idx], self.infinity_point[idx],
-            self.epipole, self.line_start[idx], self.line_end[idx], self.margin, self._a[idx], self._b,
+            self.epipole, self.margin, self._a[idx], self._b, self._rect,
         )
 
     def _paired_points(self, points2) -> np.ndarray:
@@ -486,18 +512,8 @@ class TwoViewGeometry:
         norm = np.hypot(line[:, 0], line[:, 1])
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             line = line / np.where(norm > 0, norm, np.nan)[:, None]
-        # the whole line, p0 + s d with s in R, clipped to the same rectangle
-        p0 = -line[:, 2:3] * line[:, :2]
-        d = np.column_stack([-line[:, 1], line[:, 0]])
-        L0 = np.column_stack([p0, np.ones(n)])
-        L1 = np.column_stack([p0 + d, np.ones(n)])
-        llo, lhi, lvalid = _clip(np.nan_to_num(L0), np.nan_to_num(L1), -np.inf, np.inf, rect)
-        lvalid &= np.isfinite(norm) & (norm > 0)
-        line_start = np.where(lvalid[:, None], p0 + llo[:, None] * d, np.nan)
-        line_end = np.where(lvalid[:, None], p0 + lhi[:, None] * d, np.nan)
-        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             p_inf = a[:, :2] / a[:, 2:3]
-        return EpipolarSegments(start, end, valid, line, p_inf, self.epipole, line_start, line_end, margin, a, b.copy())
+        return EpipolarSegments(start, end, valid, line, p_inf, self.epipole, margin, a, b.copy(), rect)
 
 
 def _rq(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
