@@ -255,27 +255,27 @@ class CandidateIndex:
             width = np.where(everywhere, np.pi, width)
             t_idx, t_bucket = _spread(lo, lo + width, edges)
             # one direction per bucket: the mean direction of its lines (doubled-angle average)
-            q_bucket = np.clip(np.searchsorted(edges, q_phi, side="right") - 1, 0, len(edges) - 2)
-            dirs = np.column_stack([-line[:, 1], line[:, 0]])
-            ang2 = 2 * np.arctan2(dirs[:, 1], dirs[:, 0])
             n_b = len(edges) - 1
+            q_bucket = np.clip(np.searchsorted(edges, q_phi, side="right") - 1, 0, n_b - 1)
+            ang2 = 2 * np.arctan2(line[:, 0], -line[:, 1])  # direction (-b, a) of each line
             half = 0.5 * np.arctan2(np.bincount(q_bucket, np.sin(ang2), n_b), np.bincount(q_bucket, np.cos(ang2), n_b))
             directions = np.column_stack([np.cos(half), np.sin(half)])
-
         n_b = len(edges) - 1
-        q_bucket = np.clip(np.searchsorted(edges, q_phi, side="right") - 1, 0, n_b - 1)
+        if pencil is None:
+            q_bucket = np.zeros(q_ok.size, dtype=np.intp)
         # rho: position along the bucket direction, scaled into [0, 1) so that (bucket + rho) sorts
         span = 2.0 * (self._s + 2 * self.tol + 1.0)
-        rho_t = ((y[t_idx] - self._c) * directions[t_bucket]).sum(1)
-        key_t = t_bucket + (rho_t / span + 0.5)
-        order_t = np.argsort(key_t, kind="stable")
+
+        def rho(points, bucket):
+            return (points[:, 0] - self._c[0]) * directions[bucket, 0] + (points[:, 1] - self._c[1]) * directions[bucket, 1]
+
+        key_t = t_bucket + (rho(y[t_idx], t_bucket) / span + 0.5)
+        order_t = np.argsort(key_t)
         key_t, t_sorted = key_t[order_t], t_idx[order_t]
 
-        d_q = directions[q_bucket]
-        r1 = ((self._P[q_ok] - self._c) * d_q).sum(1)
-        r2 = ((self._Q[q_ok] - self._c) * d_q).sum(1)
+        r1, r2 = rho(self._P[q_ok], q_bucket), rho(self._Q[q_ok], q_bucket)
         q_lo, q_hi = np.minimum(r1, r2) - self.tol, np.maximum(r1, r2) + self.tol
-        order_q = np.lexsort((q_lo + q_hi, q_bucket))
+        order_q = np.argsort(q_bucket + ((q_lo + q_hi) / (4 * span) + 0.5))  # by bucket, then by mid-interval
         q_sorted, qb, q_lo, q_hi = q_ok[order_q], q_bucket[order_q], q_lo[order_q], q_hi[order_q]
         # groups: consecutive queries of one bucket, at most group_size long
         pos = np.arange(len(qb))
