@@ -127,16 +127,13 @@ class CandidateIndex:
             n, off_n = self._line[:, :2], -self._line[:, 2]
         else:
             off_n = (n * self._P).sum(1)
-        self._frame = np.stack([n, d], axis=1)  # (N1, 2, 2)
-        self._off = np.column_stack([off_n, (d * self._P).sum(1)])  # (N1, 2)
-        self._length = length
-        self._groups = self._build(max(int(group_size), 1), max(int(bucket_size), 1))
-        # padded copies: index -1 selects a row that is never a candidate
+        # each with one extra last row, selected by the padding index -1, that is never a candidate
         far = 1e12
+        self._frame = np.concatenate([np.stack([n, d], axis=1), np.zeros((1, 2, 2))])  # (N1 + 1, 2, 2)
+        self._off = np.vstack([np.column_stack([off_n, (d * self._P).sum(1)]), [[far, 0.0]]])  # (N1 + 1, 2)
+        self._length = np.r_[length, 0.0]
         self._points2_padded = np.vstack([self.points2, [[far, far]]])
-        self._frame_padded = np.concatenate([self._frame, np.zeros((1, 2, 2))])
-        self._off_padded = np.vstack([self._off, [[far, 0.0]]])
-        self._length_padded = np.r_[self._length, 0.0]
+        self._groups = self._build(max(int(group_size), 1), max(int(bucket_size), 1))
 
     @property
     def blocks(self) -> list[Block]:
@@ -153,16 +150,7 @@ class CandidateIndex:
         distance to the line at most ``tol``. Queries must have a valid
         segment (those in :attr:`blocks` do).
         """
-        g = len(queries)
-        proj = self._frame[queries].reshape(2 * g, 2) @ self.points2[train].T  # rows: n.y (even), d.y (odd)
-        across = proj[0::2] - self._off[queries, 0:1]
-        if self.constraint == "line":
-            return np.abs(across) <= self.tol
-        along = proj[1::2] - self._off[queries, 1:2]
-        over = np.maximum(-along, along - self._length[queries, None])
-        np.maximum(over, 0.0, out=over)
-        dist2 = across * across + over * over
-        return dist2 <= self.tol * self.tol * (1 + 1e-9) + 1e-12
+        return self.mask_batch(np.asarray(queries)[None], np.asarray(train)[None])[0]
 
     def pairs(self) -> np.ndarray:
         """All candidate pairs ``(K, 2)`` of ``(query, train)`` indices, sorted by query then train."""
@@ -327,15 +315,15 @@ class CandidateIndex:
         """``(G, g, m)`` bool candidate test for padded index arrays from :meth:`batches` (-1 is never a candidate)."""
         G, g = Q.shape
         y = self._points2_padded[T]  # (G, m, 2)
-        proj = self._frame_padded[Q].reshape(G, 2 * g, 2) @ y.transpose(0, 2, 1)  # (G, 2g, m)
-        off = self._off_padded[Q]  # (G, g, 2)
+        proj = self._frame[Q].reshape(G, 2 * g, 2) @ y.transpose(0, 2, 1)  # (G, 2g, m): n.y, d.y interleaved
+        off = self._off[Q]  # (G, g, 2)
         across = proj[:, 0::2]
         across -= off[:, :, 0:1]
         if self.constraint == "line":
             return np.abs(across, out=across) <= self.tol
         along = proj[:, 1::2]
         along -= off[:, :, 1:2]
-        over = along - self._length_padded[Q][:, :, None]  # beyond the far end
+        over = along - self._length[Q][:, :, None]  # beyond the far end
         np.negative(along, out=along)  # before the near end
         np.maximum(over, along, out=over)
         np.maximum(over, 0.0, out=over)
