@@ -473,9 +473,10 @@ def main(argv=None) -> int:
     res["targets"] = targets(results)
     res["wall_time_s"] = time.perf_counter() - t_start
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "speed.json").write_text(json.dumps(res, indent=2) + "\n")
-    write_markdown(args.out / "speed.md", res)
-    progress(f"wrote {args.out / 'speed.md'} and speed.json in {res['wall_time_s']:.0f} s")
+    stem = "speed_quick" if args.quick else "speed"  # --quick never overwrites the committed full run
+    (args.out / f"{stem}.json").write_text(json.dumps(res, indent=2) + "\n")
+    write_markdown(args.out / f"{stem}.md", res)
+    progress(f"wrote {args.out / (stem + '.md')} and {stem}.json in {res['wall_time_s']:.0f} s")
     for pose, t in res["targets"].items():
         if t is not None:
             print(f"{pose}: segment match {t['segment_match_x']:.1f}x, knnMatch {t['segment_knn_x']:.1f}x faster than "

@@ -1,4 +1,4 @@
-"""Smoke test of benchmarks/speed.py: a tiny run writes a parseable speed.md and speed.json.
+"""Smoke test of benchmarks/speed.py: a tiny run writes a parseable speed_quick.md and speed_quick.json.
 
 No timing is asserted (benchmarks are not tests); only that the script runs end to end
 and that what it writes is complete and positive.
@@ -31,7 +31,7 @@ def tiny_run(speed, tmp_path_factory):
 def test_tiny_run_writes_markdown_and_json(speed, tiny_run):
     rc, out = tiny_run
     assert rc == 0
-    res = json.loads((out / "speed.json").read_text())
+    res = json.loads((out / "speed_quick.json").read_text())
     assert res["command"].startswith("python benchmarks/speed.py --quick --sizes 150,300")
     assert res["machine"]["cv2"] and res["machine"]["cpu_count"] >= 1
     assert list(res["poses"]) == ["forward"]
@@ -52,7 +52,7 @@ def test_tiny_run_writes_markdown_and_json(speed, tiny_run):
     assert all(t > 0 for t in res["filter"]["median_s"].values())
     assert res["filter"]["matches"] == speed.FILTER_MATCHES
 
-    md = (out / "speed.md").read_text()
+    md = (out / "speed_quick.md").read_text()
     assert res["command"] in md
     assert "## Pose `forward`" in md and "| method | n = 150 | n = 300 | exponent |" in md
     assert "Not evaluated" in md
