@@ -156,9 +156,9 @@ def detect(detector, image, max_features: int):
 
 
 def _pairs(dmatches) -> tuple[np.ndarray, np.ndarray]:
-    pairs = np.array([(m.queryIdx, m.trainIdx) for m in dmatches], dtype=np.intp).reshape(-1, 2)
-    dist = np.array([m.distance for m in dmatches], dtype=np.float32)
-    return pairs, dist
+    from .opencv import _pairs_of
+
+    return _pairs_of(dmatches), np.array([m.distance for m in dmatches], dtype=np.float32)
 
 
 def ratio_matches(knn, ratio: float):
