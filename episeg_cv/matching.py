@@ -125,11 +125,7 @@ class _Distances:
     def scores(self, qi: np.ndarray, tj: np.ndarray) -> np.ndarray:
         """``(len(qi), len(tj))`` float32 scores, increasing with distance (squared for L2)."""
         if self.norm in ("l2", "l2sqr"):  # one 2-D product over all rows, then the rows asked for
-            prod = (self.a @ self.b[tj].T)[qi]
-            prod *= -2.0
-            prod += self.aa[qi][:, None]
-            prod += self.bb[tj][None, :]
-            return np.maximum(prod, 0.0, out=prod)
+            return _squared_from_dot((self.a @ self.b[tj].T)[qi], self.aa[qi][:, None], self.bb[tj][None, :])
         return self.scores_batch(np.asarray(qi)[None], np.asarray(tj)[None])[0]
 
     def scores_batch(self, Q: np.ndarray, T: np.ndarray) -> np.ndarray:
@@ -141,10 +137,7 @@ class _Distances:
         prod = self.a[Q] @ self.b[T].transpose(0, 2, 1)
         if self.norm == "hamming":
             return (self.nbits - prod) * np.float32(0.5)
-        prod *= -2.0
-        prod += self.aa[Q][:, :, None]
-        prod += self.bb[T][:, None, :]
-        return np.maximum(prod, 0.0, out=prod)
+        return _squared_from_dot(prod, self.aa[Q][:, :, None], self.bb[T][:, None, :])
 
     def to_distance(self, scores: np.ndarray) -> np.ndarray:
         return np.sqrt(scores) if self.norm == "l2" else scores
@@ -161,6 +154,14 @@ class _Distances:
             return np.abs(diff).sum(1, dtype=np.float32)
         sq = np.einsum("ij,ij->i", diff, diff)
         return np.sqrt(sq) if self.norm == "l2" else sq
+
+
+def _squared_from_dot(prod, aa, bb):
+    """``|a|^2 + |b|^2 - 2 a.b``, in place in ``prod``, clamped at 0 (rounding)."""
+    prod *= -2.0
+    prod += aa
+    prod += bb
+    return np.maximum(prod, 0.0, out=prod)
 
 
 @dataclass(frozen=True)
