@@ -12,7 +12,7 @@ import numpy as np
 from ._validation import as_depth_range, as_nonnegative, as_points
 from .candidates import check_constraint
 from .geometry import TwoViewGeometry
-from .matching import (DEFAULT_PAD, DEFAULT_RATIO, _check_k, _Distances, check_descriptors,
+from .matching import (DEFAULT_PAD, DEFAULT_RATIO, _check_k, _check_points, _Distances, check_descriptors,
                        check_norm, check_ratio,
                        explain_pairs, filter_pairs, knn_descriptors, match_descriptors, radius_descriptors)
 
@@ -133,12 +133,10 @@ class SegmentMatcher:
     def _inputs(self, queryDescriptors, trainDescriptors, queryKeypoints, trainKeypoints):
         d1, d2 = check_descriptors(queryDescriptors, trainDescriptors, self._norm,
                                    names=("queryDescriptors", "trainDescriptors"))
-        p1 = keypoints_to_array(queryKeypoints, "queryKeypoints")
-        p2 = keypoints_to_array(trainKeypoints, "trainKeypoints")
-        for p, d, name, dname in ((p1, d1, "queryKeypoints", "queryDescriptors"),
-                                  (p2, d2, "trainKeypoints", "trainDescriptors")):
-            if len(p) != len(d):
-                raise ValueError(f"{name} has {len(p)} keypoints but {dname} has {len(d)} rows")
+        p1 = _check_points(keypoints_to_array(queryKeypoints, "queryKeypoints"), d1, "queryKeypoints",
+                           "queryDescriptors")
+        p2 = _check_points(keypoints_to_array(trainKeypoints, "trainKeypoints"), d2, "trainKeypoints",
+                           "trainDescriptors")
         return d1, d2, p1, p2
 
     def _kw(self):
