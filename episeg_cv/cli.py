@@ -13,6 +13,13 @@ Subcommands
     The paper's figure for chosen points.
 ``episeg bench [--quick]``
     Run the scripts of ``benchmarks/`` (source checkout only).
+``episeg colmap MODEL IMAGE_DIR --database DB [...]``
+    Match every pair of a posed collection (a COLMAP model or a poses JSON)
+    on its epipolar segments and write a COLMAP database
+    (:func:`episeg_cv.colmap.match_model`); optionally triangulate it.
+``episeg synthetic DIR [--views N]``
+    Render a posed synthetic collection (images, COLMAP model, poses JSON)
+    to try ``episeg colmap`` on.
 
 Exit codes: 0 success, 1 bad data (missing or unreadable file, bad
 calibration), 2 usage errors. Errors print one line on stderr, no traceback.
@@ -701,7 +708,119 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"run only these scripts ({', '.join(BENCH_SCRIPTS)})")
     p.add_argument("--dir", default=None, help="benchmarks folder (default: the repository's benchmarks/)")
     p.set_defaults(func=cmd_bench)
+
+    p = sub.add_parser("colmap", parents=[common], formatter_class=_Formatter,
+                       help="match a posed collection into a COLMAP database",
+                       description="Compute features once per image (cached on disk), match every pair on its "
+                                   "epipolar segments from the known poses, and write a COLMAP database (cameras, "
+                                   "rigs, frames, images, keypoints, matches, CALIBRATED two-view geometries) that "
+                                   "'colmap point_triangulator' or pycolmap.triangulate_points uses unchanged. "
+                                   "MODEL is a COLMAP sparse model folder or a poses JSON (see "
+                                   "episeg_cv.colmap.load_poses).",
+                       epilog="examples:\n  episeg colmap sparse/0 images --database out.db --neighbors 10 "
+                              "--triangulate tri\n  episeg colmap poses.json images --database out.db --workers 2\n"
+                              "  episeg colmap sparse/0 images --database out.db --scheduler tcp://10.0.0.5:8786 "
+                              "--resume")
+    p.add_argument("model", help="COLMAP model folder (cameras, images, points3D; .bin or .txt) or poses JSON")
+    p.add_argument("image_dir", help="folder of the images, named as in the model")
+    p.add_argument("--database", required=True, metavar="DB", help="COLMAP database to write")
+    pg = p.add_mutually_exclusive_group()
+    pg.add_argument("--pairs", metavar="FILE", help="pairs file, one 'name1 name2' per line (COLMAP/hloc)")
+    pg.add_argument("--neighbors", type=_positive_int, metavar="K",
+                    help="each image's K best partners by view overlap (default: every pair)")
+    p.add_argument("--detector", choices=("sift", "orb", "akaze"), default="sift", help="keypoint detector")
+    p.add_argument("--max-features", type=_positive_int, default=8192, metavar="N", help="keypoints per image")
+    p.add_argument("--constraint", choices=("segment", "line"), default="segment",
+                   help="search the correct segment or the whole epipolar line")
+    p.add_argument("--depth-range", nargs="+", default=["auto"], metavar="auto|none|ZMIN ZMAX",
+                   help="per-image depth ranges from the model's 3D points (auto), none, or fixed bounds")
+    p.add_argument("--tol", type=_nonneg_float, default=2.0, metavar="PX", help="pixel tolerance of the constraint")
+    p.add_argument("--workers", type=_positive_int, default=1, metavar="N", help="local worker processes")
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="Dask scheduler address, or local:N for a new LocalCluster (needs episeg_cv[dask])")
+    p.add_argument("--cache", default=None, metavar="DIR", help="feature cache folder (default: DB.features)")
+    p.add_argument("--triangulate", default=None, metavar="OUT_DIR",
+                   help="then run pycolmap.triangulate_points and write the model to OUT_DIR")
+    rg = p.add_mutually_exclusive_group()
+    rg.add_argument("--resume", action="store_true", help="continue DB, skipping the pairs it holds")
+    rg.add_argument("--overwrite", action="store_true", help="replace an existing DB")
+    p.set_defaults(func=cmd_colmap)
+
+    p = sub.add_parser("synthetic", parents=[common], formatter_class=_Formatter,
+                       help="render a posed synthetic collection to try 'episeg colmap'",
+                       description="Render views of a room with boxes along an arc (exact poses) and write "
+                                   "DIR/images, a COLMAP model DIR/model (with 3D points sampled from the "
+                                   "rendered depth) and DIR/poses.json.",
+                       epilog="example:\n  episeg synthetic room && episeg colmap room/model room/images "
+                              "--database room/episeg.db --triangulate room/triangulated")
+    p.add_argument("out", metavar="DIR", help="output folder")
+    p.add_argument("--views", type=_positive_int, default=12, metavar="N", help="number of views (>= 2)")
+    p.add_argument("--size", type=_positive_int, nargs=2, default=[640, 480], metavar=("W", "H"), help="image size")
+    p.add_argument("--seed", type=int, default=7, help="seed of the room")
+    p.set_defaults(func=cmd_synthetic)
     return parser
+
+
+def _colmap_depth(values):
+    if len(values) == 1 and values[0] in ("auto", "none"):
+        return values[0]
+    if len(values) == 2:
+        try:
+            return (_depth(values[0]), _depth(values[1]))
+        except argparse.ArgumentTypeError as e:
+            raise UserError(f"--depth-range: {e}") from e
+    raise UserError(f"--depth-range takes 'auto', 'none' or ZMIN ZMAX, got {' '.join(values)!r}")
+
+
+def cmd_colmap(args, console: _Console) -> int:
+    try:
+        import pycolmap
+    except ImportError as e:
+        raise UserError('episeg colmap needs pycolmap: pip install "episeg_cv[colmap]"') from e
+    from . import colmap
+
+    if not console.verbose:
+        pycolmap.logging.minloglevel = 2  # COLMAP's INFO and WARNING lines only with --verbose
+    bars = {}
+
+    def progress(stage, done, total):
+        bar = bars.get(stage) or bars.setdefault(stage, console.progress(total, stage))
+        dt = time.perf_counter() - bar.t0
+        bar.step(f"{done / dt:.1f} {'images' if stage == 'features' else 'pairs'}/s" if dt > 0 else "")
+
+    t0 = time.perf_counter()
+    try:
+        report = colmap.match_model(
+            args.model, args.image_dir, args.database, pairs=args.pairs, neighbors=args.neighbors,
+            detector=args.detector, max_features=args.max_features, constraint=args.constraint,
+            depth_range=_colmap_depth(args.depth_range), tol=args.tol, workers=args.workers,
+            scheduler=args.scheduler, cache_dir=args.cache, resume=args.resume, overwrite=args.overwrite,
+            progress=progress, log=lambda msg: print(f"{PROG}: {msg}", file=sys.stderr, flush=True))
+    finally:
+        for bar in bars.values():
+            bar.close()
+    console.print(report.summary())
+    if args.triangulate:
+        rec = colmap.triangulate(args.database, args.model, args.image_dir, args.triangulate)
+        console.print(f"triangulated model in {args.triangulate}: {rec.num_points3D()} points, "
+                      f"mean track length {rec.compute_mean_track_length():.2f}, "
+                      f"mean reprojection error {rec.compute_mean_reprojection_error():.3f} px")
+    console.info(f"done in {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
+def cmd_synthetic(args, console: _Console) -> int:
+    from . import scenes
+    try:
+        from .colmap import save_collection
+    except ImportError as e:
+        raise UserError('episeg synthetic needs pycolmap: pip install "episeg_cv[colmap]"') from e
+    console.info(f"rendering {args.views} views at {args.size[0]}x{args.size[1]}")
+    paths = save_collection(scenes.make_collection(args.views, tuple(args.size), seed=args.seed), args.out)
+    console.print(f"wrote {args.views} images to {paths['images']}, a COLMAP model to {paths['model']} and "
+                  f"{paths['poses']}\ntry: {PROG} colmap {paths['model']} {paths['images']} "
+                  f"--database {Path(args.out) / 'episeg.db'} --triangulate {Path(args.out) / 'triangulated'}")
+    return 0
 
 
 def _one_line(exc: BaseException) -> str:
