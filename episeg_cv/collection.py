@@ -370,6 +370,11 @@ class FeatureStore:
         os.replace(tmp, path)
         return int(len(kp))
 
+    def keypoints(self, view: View) -> np.ndarray:
+        """The raw ``(N, 2)`` keypoints of ``view`` only (the descriptors stay on disk)."""
+        with np.load(self.path(view)) as z:
+            return z["keypoints"]
+
     def load(self, view: View) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(keypoints, pinhole keypoints, descriptors)`` of ``view`` (run :meth:`ensure` first)."""
         with np.load(self.path(view)) as z:

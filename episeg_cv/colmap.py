@@ -62,6 +62,8 @@ __all__ = ["load_model", "load_poses", "save_poses", "auto_depth_ranges", "match
 
 #: Above this many images, exhaustive pairing warns (pairs grow as n^2 / 2).
 EXHAUSTIVE_WARN = 300
+#: Seconds to wait for a Dask scheduler before giving up.
+CONNECT_TIMEOUT = 10.0
 
 
 def _pycolmap():
@@ -245,7 +247,7 @@ def _run_in_worker(fn, item):
 class _Runner:
     """Run ``fn`` over items with at most ``window`` in flight; yields results as they finish."""
 
-    def __init__(self, workers: int = 1, scheduler: str | None = None, connect_timeout: float = 10.0):
+    def __init__(self, workers: int = 1, scheduler: str | None = None):
         self.workers, self.scheduler = workers, scheduler
         self._pool = self._client = self._cluster = None
         if scheduler is not None:
@@ -261,7 +263,7 @@ class _Runner:
                 self.describe = f"a local Dask cluster of {n} workers"
             else:
                 try:
-                    self._client = distributed.Client(scheduler, timeout=f"{connect_timeout}s")
+                    self._client = distributed.Client(scheduler, timeout=f"{CONNECT_TIMEOUT}s")
                 except (OSError, TimeoutError) as e:
                     raise ConnectionError(f"cannot reach the Dask scheduler at {scheduler!r}: {e}") from e
                 self.describe = f"the Dask cluster at {scheduler}"
@@ -341,8 +343,11 @@ def _check_database_path(database, resume: bool, overwrite: bool) -> Path:
     return path
 
 
-def _create_database(path: Path, rec, views, keypoints) -> None:
-    """Cameras, rigs, frames, images and keypoints, written under a temporary name, then renamed."""
+def _create_database(path: Path, rec, views, store: FeatureStore) -> None:
+    """Cameras, rigs, frames, images and keypoints, written under a temporary name, then renamed.
+
+    Keypoints are read from ``store`` one image at a time.
+    """
     pycolmap = _pycolmap()
     tmp = path.with_name(f".{path.name}.{os.getpid()}.partial")
     tmp.unlink(missing_ok=True)
@@ -361,8 +366,8 @@ def _create_database(path: Path, rec, views, keypoints) -> None:
                 for d in frame.data_ids:
                     f.add_data_id(d)
                 db.write_frame(f, use_frame_id=True)
-            for v, kp in zip(views, keypoints):
-                db.write_keypoints(v.image_id, (kp + 0.5).astype(np.float32))
+            for v in views:
+                db.write_keypoints(v.image_id, (store.keypoints(v) + 0.5).astype(np.float32))
         db.close()
         os.replace(tmp, path)
     finally:
@@ -647,7 +652,7 @@ def match_model(model, image_dir, database, *, pairs=None, neighbors=None, detec
         else:
             if path.exists():  # overwrite (checked above)
                 path.unlink()
-            _create_database(path, rec, views, [store.load(v)[0] for v in views])
+            _create_database(path, rec, views, store)
             done = set()
         todo = [p for p in pair_list if p not in done]
         report.n_skipped = len(pair_list) - len(todo)
