@@ -406,16 +406,17 @@ class PairResult:
     """What a worker sends back to the writer.
 
     ``matches`` and ``inliers`` are ``(M, 2)`` uint32 keypoint indices
-    ``(i1, i2)`` into the two images' stored keypoints. ``length_full`` and
-    ``length_ranged`` are the summed segment lengths (pixels) of up to
-    ``PairJob.samples`` queries without and with the depth ranges.
+    ``(i1, i2)`` into the two images' stored keypoints. ``lengths`` holds the
+    summed search lengths in image 2, in pixels, of up to ``PairJob.samples``
+    queries: the epipolar line, the segment, and the segment within view 1's
+    depth range (all clipped to the image); ``samples`` is their number.
     """
 
     index: int
     matches: np.ndarray
     inliers: np.ndarray
-    length_full: float
-    length_ranged: float
+    lengths: tuple
+    samples: int
 
 
 def match_pair(job: PairJob) -> PairResult:
@@ -434,7 +435,7 @@ def match_pair(job: PairJob) -> PairResult:
     keep = filter_pairs(pairs[:, ::-1], q2, q1, g.inverse(), tol=job.tol, depth_range=job.view2.depth_range,
                         constraint=job.constraint)
     sample = q1[:: max(1, len(q1) // max(job.samples, 1))][: job.samples]
-    full = g.segments(sample).length
-    ranged = g.segments(sample, job.view1.depth_range).length
-    return PairResult(job.index, pairs.astype(np.uint32), pairs[keep].astype(np.uint32),
-                      float(np.nansum(full)), float(np.nansum(ranged)))
+    full = g.segments(sample)
+    ranged = g.segments(sample, job.view1.depth_range)
+    lengths = tuple(float(np.sum(x)) for x in (full.line_length, full.length, ranged.length))
+    return PairResult(job.index, pairs.astype(np.uint32), pairs[keep].astype(np.uint32), lengths, len(sample))

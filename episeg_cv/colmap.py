@@ -248,7 +248,6 @@ class _Runner:
     """Run ``fn`` over items with at most ``window`` in flight; yields results as they finish."""
 
     def __init__(self, workers: int = 1, scheduler: str | None = None):
-        self.workers, self.scheduler = workers, scheduler
         self._pool = self._client = self._cluster = None
         if scheduler is not None:
             try:
@@ -313,13 +312,10 @@ class _Runner:
 
 
 def _positive_int(value, name) -> int:
-    try:
-        n = int(value)
-    except (TypeError, ValueError):
-        n = 0
-    if isinstance(value, bool) or n < 1:
+    ok = isinstance(value, (int, np.integer)) or (isinstance(value, str) and value.strip().isdigit())
+    if isinstance(value, bool) or not ok or int(value) < 1:
         raise ValueError(f"{name} must be a positive integer, got {value!r}")
-    return n
+    return int(value)
 
 
 # --------------------------------------------------------------------------------------
@@ -457,9 +453,11 @@ class MatchReport:
         Where the jobs ran.
     depth_ranges : dict
         ``{name: (zmin, zmax)}`` used for each image.
-    search_space : float or None
-        ``1 - L_ranged / L_full``: how much the depth ranges shrank the summed
-        segment length of sampled queries (None when no pair was matched).
+    search_length : dict
+        Mean search length per sampled query in image 2, pixels (up to 256
+        queries per pair): ``"line"`` (the whole epipolar line in the image),
+        ``"segment"`` (the segment with depths in ``(0, inf)``) and
+        ``"segment_in_depth_range"``. Empty when no pair was matched.
     """
 
     database: Path
@@ -474,7 +472,7 @@ class MatchReport:
     pairs_per_second: float = 0.0
     runner: str = "this process"
     depth_ranges: dict = field(default_factory=dict)
-    search_space: float | None = None
+    search_length: dict = field(default_factory=dict)
 
     def summary(self) -> str:
         lines = [f"database: {self.database}",
@@ -482,10 +480,13 @@ class MatchReport:
                  f"matches written: {self.n_matches}, inliers: {self.n_inliers}",
                  f"features: {self.seconds_features:.1f} s; matching: {self.seconds_matching:.1f} s, "
                  f"{self.pairs_per_second:.1f} pairs/s on {self.runner}"]
-        bounded = sum(np.isfinite(z[1]) for z in self.depth_ranges.values())
-        if self.search_space is not None:
-            lines.append(f"depth ranges: {bounded} of {self.n_images} images bounded; the segments are "
-                         f"{100 * self.search_space:.1f} % shorter than with (0, inf)")
+        bounded = sum(bool(np.isfinite(z[1]) or z[0] > 0) for z in self.depth_ranges.values())
+        lines.append(f"depth ranges: {bounded} of {self.n_images} images bounded")
+        L = self.search_length
+        if L and L["line"] > 0:
+            lines.append(f"search length per query: line {L['line']:.0f} px, segment {L['segment']:.0f} px "
+                         f"(-{100 * (1 - L['segment'] / L['line']):.0f} %), segment in depth range "
+                         f"{L['segment_in_depth_range']:.0f} px (-{100 * (1 - L['segment_in_depth_range'] / L['line']):.0f} %)")
         return "\n".join(lines)
 
 
@@ -584,7 +585,9 @@ def match_model(model, image_dir, database, *, pairs=None, neighbors=None, detec
         Local processes for features and pairs (1: in this process).
     scheduler : str, optional
         A Dask scheduler address, or ``"local:N"`` for a new ``LocalCluster``
-        of N workers. The feature cache must be on a filesystem the workers share.
+        of N workers. The feature cache must be on a filesystem the workers
+        share, and episeg_cv installed on them. Local processes are spawned:
+        call from under ``if __name__ == "__main__":`` in a script.
     cache_dir : str or Path, optional
         Feature cache; default ``<database>.features`` next to the database.
     resume, overwrite : bool, optional
@@ -660,7 +663,7 @@ def match_model(model, image_dir, database, *, pairs=None, neighbors=None, detec
         jobs = (PairJob(k, views[i], views[j], store, constraint, tol) for k, (i, j) in enumerate(todo))
         pycolmap = _pycolmap()
         t0 = time.perf_counter()
-        full = ranged = 0.0
+        lengths, samples = np.zeros(3), 0
         db = pycolmap.Database.open(str(path))
         try:
             for res in runner.imap(match_pair, jobs):
@@ -668,15 +671,16 @@ def match_model(model, image_dir, database, *, pairs=None, neighbors=None, detec
                 _write_pair(db, views[i], views[j], res.matches, res.inliers)
                 report.n_matches += len(res.matches)
                 report.n_inliers += len(res.inliers)
-                full += res.length_full
-                ranged += res.length_ranged
+                lengths += res.lengths
+                samples += res.samples
                 done_now = report.n_pairs_done = report.n_pairs_done + 1
                 tick("pairs", done_now, len(todo))
         finally:
             db.close()
         report.seconds_matching = time.perf_counter() - t0
         report.pairs_per_second = report.n_pairs_done / report.seconds_matching if report.seconds_matching > 0 else 0.0
-        report.search_space = 1.0 - ranged / full if full > 0 else None
+        if samples:
+            report.search_length = dict(zip(("line", "segment", "segment_in_depth_range"), lengths / samples))
     finally:
         runner.close()
     return report

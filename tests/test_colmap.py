@@ -130,7 +130,9 @@ def test_line_constraint_keeps_at_least_the_segment_matches_count(folder, tmp_pa
     line = colmap.match_model(folder["model"], folder["images"], tmp_path / "l.db", constraint="line",
                               depth_range="none")
     assert seg.n_matches > 0 and line.n_matches > 0
-    assert seg.search_space == pytest.approx(0.0)
+    L = seg.search_length
+    assert L["segment_in_depth_range"] == pytest.approx(L["segment"])  # depth_range "none"
+    assert 0 < L["segment"] < L["line"]
 
 
 # --------------------------------------------------------------------------------------
@@ -263,7 +265,8 @@ def test_auto_depth_ranges_keep_the_true_matches(folder, reference, collection):
         kept += filter_pairs(pairs, p1, p2, g, depth_range=ranged[i].depth_range, tol=3.0).sum()
         total += len(pairs)
     assert total > 1000 and kept / total > 0.98
-    assert reference[1].search_space > 0.2
+    L = reference[1].search_length
+    assert L["segment_in_depth_range"] < 0.8 * L["segment"] < 0.8 * L["line"]
 
 
 def test_undistort_inverts_opencv_distortion():
