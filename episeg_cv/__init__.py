@@ -5,7 +5,9 @@ Start with :class:`TwoViewGeometry` and :class:`SegmentMatcher`.
 
 Modules, in the direction the data flows: ``geometry`` (segments) ->
 ``candidates`` (spatial index) -> ``matching`` (arrays) -> ``opencv``
-(the ``cv2.BFMatcher`` drop-in); ``scenes`` and ``datasets`` make test data;
+(the ``cv2.BFMatcher`` drop-in); ``collection`` -> ``colmap`` match posed
+collections into a COLMAP database (``from episeg_cv import colmap``; needs
+pycolmap); ``scenes`` and ``datasets`` make test data;
 ``calib``, ``drawing`` and ``cli`` are the edges.
 """
 

@@ -694,7 +694,7 @@ def _ensure_features(item):
 # --------------------------------------------------------------------------------------
 # Triangulation
 # --------------------------------------------------------------------------------------
-def triangulate(database, model, image_dir, output_dir):
+def triangulate(database, model, image_dir, output_dir, options=None):
     """Run ``pycolmap.triangulate_points`` on a database from :func:`match_model`.
 
     Parameters
@@ -704,6 +704,9 @@ def triangulate(database, model, image_dir, output_dir):
         The same model given to :func:`match_model` (its 3D points are cleared).
     image_dir, output_dir : str or Path
         ``output_dir`` is created; the triangulated model is written there.
+    options : pycolmap.IncrementalPipelineOptions, optional
+        COLMAP's defaults otherwise. Note that they ignore two-view tracks
+        (``triangulation.ignore_two_view_tracks``): a point needs three views.
 
     Returns
     -------
@@ -715,7 +718,9 @@ def triangulate(database, model, image_dir, output_dir):
         rec = _reconstruction_from_views(views)
     out = Path(output_dir)
     out.mkdir(parents=True, exist_ok=True)
-    return pycolmap.triangulate_points(rec, str(database), str(image_dir), str(out))
+    if options is None:
+        options = pycolmap.IncrementalPipelineOptions()
+    return pycolmap.triangulate_points(rec, str(database), str(image_dir), str(out), options=options)
 
 
 # --------------------------------------------------------------------------------------

@@ -427,3 +427,21 @@ def test_cli_synthetic(tmp_path):
     views, _ = colmap.load_model(tmp_path / "s" / "model")
     assert [v.name for v in views] == ["view_000.png", "view_001.png"]
     assert len(colmap.load_poses(tmp_path / "s" / "poses.json")) == 2
+
+
+def test_readme_colmap_example_runs(tmp_path, monkeypatch, capsys):
+    import re
+    from pathlib import Path
+
+    readme = Path(__file__).resolve().parents[1] / "README.md"
+    if not readme.exists():
+        pytest.skip("README.md not present")
+    blocks = [b for b in re.findall(r"```python\n(.*?)```", readme.read_text(), flags=re.S) if "colmap." in b]
+    assert len(blocks) == 1
+    monkeypatch.chdir(tmp_path)
+    colmap.save_collection(scenes.make_collection(4, image_size=(320, 240)), "room")
+    exec(compile(blocks[0], str(readme), "exec"), {})  # noqa: S102 - our own README
+    out = capsys.readouterr().out
+    assert "matches written" in out
+    n_points, error = out.strip().splitlines()[-1].split()
+    assert int(n_points) > 20 and float(error) < 1.0
