@@ -39,6 +39,7 @@ __all__ = [
     "View",
     "DETECTORS",
     "read_pairs",
+    "index_pairs",
     "exhaustive_pairs",
     "overlap_scores",
     "neighbor_pairs",
@@ -161,8 +162,7 @@ def read_pairs(path, names) -> list[tuple[int, int]]:
         ``path:line: ...`` for a line without two names, an unknown image, or
         an image paired with itself.
     """
-    index = {n: i for i, n in enumerate(names)}
-    out, seen = [], set()
+    items = []
     with open(path, encoding="utf-8") as f:
         for lineno, raw in enumerate(f, 1):
             line = raw.strip()
@@ -171,16 +171,27 @@ def read_pairs(path, names) -> list[tuple[int, int]]:
             parts = line.split()
             if len(parts) < 2:
                 raise ValueError(f"{path}:{lineno}: expected 'name1 name2', got {line!r}")
-            for n in parts[:2]:
-                if n not in index:
-                    raise ValueError(f"{path}:{lineno}: unknown image {n!r} (not in the model)")
-            i, j = index[parts[0]], index[parts[1]]
-            if i == j:
-                raise ValueError(f"{path}:{lineno}: image {parts[0]!r} is paired with itself")
-            key = (min(i, j), max(i, j))
-            if key not in seen:
-                seen.add(key)
-                out.append(key)
+            items.append((f"{path}:{lineno}", parts[0], parts[1]))
+    return index_pairs(items, names)
+
+
+def index_pairs(items, names) -> list[tuple[int, int]]:
+    """``(where, name1, name2)`` items -> unique index pairs ``(i, j)``, ``i < j``, in order.
+
+    Raises ``ValueError`` prefixed with ``where`` for an unknown image or an image paired with itself.
+    """
+    index = {n: i for i, n in enumerate(names)}
+    out, seen = [], set()
+    for where, a, b in items:
+        for n in (a, b):
+            if n not in index:
+                raise ValueError(f"{where}: unknown image {n!r} (not in the model)")
+        if a == b:
+            raise ValueError(f"{where}: image {a!r} is paired with itself")
+        key = (min(index[a], index[b]), max(index[a], index[b]))
+        if key not in seen:
+            seen.add(key)
+            out.append(key)
     return out
 
 

@@ -53,7 +53,7 @@ import cv2
 import numpy as np
 
 from .collection import (DETECTORS, FeatureStore, PairJob, View, depth_range_from_depths, exhaustive_pairs,
-                         match_pair, neighbor_pairs, read_pairs)
+                         index_pairs, match_pair, neighbor_pairs, read_pairs)
 from .candidates import check_constraint
 from ._validation import as_nonnegative
 
@@ -509,17 +509,7 @@ def _resolve_pairs(views, pairs, neighbors, warn):
     if isinstance(pairs, (str, os.PathLike)):
         return read_pairs(pairs, names)
     if pairs is not None:
-        index = {n: i for i, n in enumerate(names)}
-        out = set()
-        for k, (a, b) in enumerate(pairs):
-            for n in (a, b):
-                if n not in index:
-                    raise ValueError(f"pairs[{k}]: unknown image {n!r}")
-            if a == b:
-                raise ValueError(f"pairs[{k}]: image {a!r} is paired with itself")
-            i, j = index[a], index[b]
-            out.add((min(i, j), max(i, j)))
-        return sorted(out)
+        return index_pairs([(f"pairs[{k}]", a, b) for k, (a, b) in enumerate(pairs)], names)
     if neighbors is not None:
         return neighbor_pairs(views, neighbors)
     if len(views) > EXHAUSTIVE_WARN:

@@ -348,6 +348,16 @@ def test_database_path_problems(folder, reference, tmp_path):
     _same(colmap.read_database_matches(existing), reference[2])
 
 
+def test_unwritable_database_path_is_refused(folder, tmp_path, monkeypatch):
+    import os
+
+    real = os.access
+    monkeypatch.setattr(os, "access", lambda p, mode: False if mode == os.W_OK else real(p, mode))
+    with pytest.raises(ValueError, match="is not writable"):
+        colmap.match_model(folder["model"], folder["images"], tmp_path / "x.db")
+    assert not (tmp_path / "x.db").exists()
+
+
 def test_resume_refuses_a_database_of_other_features(folder, reference, tmp_path):
     db = tmp_path / "r.db"
     shutil.copy(reference[0], db)
