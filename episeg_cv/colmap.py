@@ -285,7 +285,7 @@ class _Runner:
             import distributed
 
             submit = lambda it: self._client.submit(_run_in_worker, fn, it, pure=False)  # noqa: E731
-            pending = [submit(it) for it, _ in zip(items, range(self.window))]
+            pending = [submit(it) for _, it in zip(range(self.window), items)]
             done = distributed.as_completed(pending)
             for fut in done:
                 yield fut.result()
@@ -293,7 +293,7 @@ class _Runner:
                 if nxt is not None:
                     done.add(submit(nxt))
             return
-        pending = {self._pool.submit(fn, it) for it, _ in zip(items, range(self.window))}
+        pending = {self._pool.submit(fn, it) for _, it in zip(range(self.window), items)}
         while pending:
             finished, pending = cf.wait(pending, return_when=cf.FIRST_COMPLETED)
             for fut in finished:

@@ -455,3 +455,20 @@ def test_readme_colmap_example_runs(tmp_path, monkeypatch, capsys):
     assert "matches written" in out
     n_points, error = out.strip().splitlines()[-1].split()
     assert int(n_points) > 20 and float(error) < 1.0
+
+
+def _square(x):
+    return x * x
+
+
+@pytest.mark.parametrize("workers, scheduler", [(1, None), (2, None), (1, "local:1")])
+def test_runner_returns_every_item_once(workers, scheduler):
+    """More items than the window of jobs in flight (a regression: one item per window was dropped)."""
+    if scheduler:
+        pytest.importorskip("distributed")
+    runner = colmap._Runner(workers, scheduler)
+    try:
+        out = sorted(runner.imap(_square, range(3 * runner.window + 1)))
+    finally:
+        runner.close()
+    assert out == [k * k for k in range(3 * runner.window + 1)]
