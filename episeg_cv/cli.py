@@ -735,6 +735,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--depth-range", nargs="+", default=["auto"], metavar="auto|none|ZMIN ZMAX",
                    help="per-image depth ranges from the model's 3D points (auto), none, or fixed bounds")
     p.add_argument("--tol", type=_nonneg_float, default=2.0, metavar="PX", help="pixel tolerance of the constraint")
+    p.add_argument("--ratio", type=_ratio, default=None,
+                   help="ratio test of the guided matcher, with its mutual check (default: the matcher's)")
     p.add_argument("--workers", type=_positive_int, default=1, metavar="N", help="local worker processes")
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="Dask scheduler address, or local:N for a new LocalCluster (needs episeg_cv[dask])")
@@ -793,7 +795,8 @@ def cmd_colmap(args, console: _Console) -> int:
         report = colmap.match_model(
             args.model, args.image_dir, args.database, pairs=args.pairs, neighbors=args.neighbors,
             detector=args.detector, max_features=args.max_features, constraint=args.constraint,
-            depth_range=_colmap_depth(args.depth_range), tol=args.tol, workers=args.workers,
+            depth_range=_colmap_depth(args.depth_range), tol=args.tol,
+            **({} if args.ratio is None else {"ratio": args.ratio}), workers=args.workers,
             scheduler=args.scheduler, cache_dir=args.cache, resume=args.resume, overwrite=args.overwrite,
             progress=progress, log=lambda msg: print(f"{PROG}: {msg}", file=sys.stderr, flush=True))
     finally:

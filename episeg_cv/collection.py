@@ -33,7 +33,7 @@ import numpy as np
 
 from ._validation import as_camera_matrix, as_depth_range, as_image_size, as_rotation, as_vector3
 from .geometry import TwoViewGeometry
-from .matching import filter_pairs, match_descriptors
+from .matching import DEFAULT_RATIO, filter_pairs, match_descriptors
 
 __all__ = [
     "View",
@@ -52,6 +52,9 @@ __all__ = [
 
 #: Detector name -> (descriptor norm). SIFT is float32 / L2, ORB and AKAZE are binary / Hamming.
 DETECTORS = {"sift": "l2", "orb": "hamming", "akaze": "hamming"}
+
+#: Bumped whenever the features change for the same settings (stale cache files are recomputed).
+FEATURES_VERSION = 2
 
 #: COLMAP camera models without distortion: pinhole keypoints are the raw ones.
 PINHOLE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE")
@@ -284,9 +287,13 @@ def depth_range_from_depths(depths, percentiles=(2.0, 98.0), margin: float = 0.2
 # --------------------------------------------------------------------------------------
 # Features, cached on disk
 # --------------------------------------------------------------------------------------
+#: SIFT's contrast threshold here: COLMAP's peak threshold (0.02 / 3 per layer), not OpenCV's 0.04.
+SIFT_CONTRAST = 0.02
+
+
 def _detector(name: str, max_features: int):
     if name == "sift":
-        return cv2.SIFT_create(nfeatures=max_features)
+        return cv2.SIFT_create(nfeatures=max_features, contrastThreshold=SIFT_CONTRAST)
     if name == "orb":
         return cv2.ORB_create(nfeatures=max_features)
     if name == "akaze":
@@ -297,11 +304,15 @@ def _detector(name: str, max_features: int):
 def detect_features(image: np.ndarray, detector: str = "sift", max_features: int = 8192):
     """Keypoints and descriptors of a grey image, strongest first, at most ``max_features``.
 
+    SIFT is set up as COLMAP sets it up: the contrast threshold
+    :data:`SIFT_CONTRAST` and RootSIFT descriptors (L1-normalised, then the
+    square root; COLMAP's ``L1_ROOT``), which match better under L2.
+
     Returns
     -------
     keypoints : (N, 2) float64
         Pixel positions (centre of the top-left pixel at ``(0, 0)``).
-    descriptors : (N, D) float32 (SIFT) or uint8 (ORB, AKAZE)
+    descriptors : (N, D) float32 (RootSIFT) or uint8 (ORB, AKAZE)
     """
     kp, des = _detector(detector, max_features).detectAndCompute(image, None)
     if des is None or not kp:
@@ -309,7 +320,10 @@ def detect_features(image: np.ndarray, detector: str = "sift", max_features: int
         return np.zeros((0, 2)), np.zeros((0, width), np.float32 if detector == "sift" else np.uint8)
     order = np.argsort([-k.response for k in kp], kind="stable")[:max_features]
     pts = cv2.KeyPoint_convert(kp).astype(np.float64).reshape(-1, 2)
-    return pts[order], np.ascontiguousarray(des[order])
+    des = des[order]
+    if detector == "sift":
+        des = np.sqrt(des / np.maximum(des.sum(axis=1, keepdims=True), 1e-12)).astype(np.float32)
+    return pts[order], np.ascontiguousarray(des)
 
 
 class FeatureStore:
@@ -351,7 +365,7 @@ class FeatureStore:
 
     def _signature(self, view: View) -> str:
         st = (self.image_dir / view.name).stat()
-        return repr((st.st_size, st.st_mtime_ns, self.detector, self.max_features, view.camera_model,
+        return repr((FEATURES_VERSION, st.st_size, st.st_mtime_ns, self.detector, self.max_features, view.camera_model,
                      tuple(float(p) for p in view.camera_params), view.image_size))
 
     def ensure(self, view: View) -> int:
@@ -409,6 +423,7 @@ class PairJob:
     store: FeatureStore
     constraint: str = "segment"
     tol: float = 2.0
+    ratio: float = DEFAULT_RATIO
     samples: int = 256
 
 
@@ -442,7 +457,7 @@ def match_pair(job: PairJob) -> PairResult:
     _, q2, d2 = job.store.load(job.view2)
     g = job.view1.geometry_to(job.view2)
     pairs, _ = match_descriptors(d1, d2, q1, q2, g, norm=job.store.norm, tol=job.tol,
-                                 depth_range=job.view1.depth_range, constraint=job.constraint)
+                                 depth_range=job.view1.depth_range, constraint=job.constraint, ratio=job.ratio)
     keep = filter_pairs(pairs[:, ::-1], q2, q1, g.inverse(), tol=job.tol, depth_range=job.view2.depth_range,
                         constraint=job.constraint)
     sample = q1[:: max(1, len(q1) // max(job.samples, 1))][: job.samples]

@@ -55,6 +55,7 @@ import numpy as np
 from .collection import (DETECTORS, FeatureStore, PairJob, View, depth_range_from_depths, exhaustive_pairs,
                          index_pairs, match_pair, neighbor_pairs, read_pairs)
 from .candidates import check_constraint
+from .matching import DEFAULT_RATIO, check_ratio
 from ._validation import as_nonnegative
 
 __all__ = ["load_model", "load_poses", "save_poses", "auto_depth_ranges", "match_model", "MatchReport",
@@ -541,7 +542,7 @@ def _resolve_depth(views, rec, depth_range, warn):
 
 def match_model(model, image_dir, database, *, pairs=None, neighbors=None, detector: str = "sift",
                 max_features: int = 8192, constraint: str = "segment", depth_range="auto", tol: float = 2.0,
-                workers: int = 1, scheduler: str | None = None, cache_dir=None, resume: bool = False,
+                ratio: float = DEFAULT_RATIO, workers: int = 1, scheduler: str | None = None, cache_dir=None, resume: bool = False,
                 overwrite: bool = False, progress=None, log=None) -> MatchReport:
     """Match every pair of a posed collection on its epipolar segments; write a COLMAP database.
 
@@ -571,6 +572,9 @@ def match_model(model, image_dir, database, *, pairs=None, neighbors=None, detec
         ``(0, inf)`` where there is none.
     tol : float, optional
         Pixel tolerance to the segment, in the pinhole image.
+    ratio : float in (0, 1], optional
+        The ratio test of :func:`~episeg_cv.matching.match_descriptors`
+        (with its mutual check and padding).
     workers : int, optional
         Local processes for features and pairs (1: in this process).
     scheduler : str, optional
@@ -608,6 +612,7 @@ def match_model(model, image_dir, database, *, pairs=None, neighbors=None, detec
     if detector not in DETECTORS:
         raise ValueError(f"detector must be one of {tuple(DETECTORS)}, got {detector!r}")
     tol = as_nonnegative(tol, "tol")
+    ratio = check_ratio(ratio, "ratio")
     workers = _positive_int(workers, "workers")
     image_dir = Path(image_dir)
     if not image_dir.is_dir():
@@ -650,7 +655,7 @@ def match_model(model, image_dir, database, *, pairs=None, neighbors=None, detec
         todo = [p for p in pair_list if p not in done]
         report.n_skipped = len(pair_list) - len(todo)
 
-        jobs = (PairJob(k, views[i], views[j], store, constraint, tol) for k, (i, j) in enumerate(todo))
+        jobs = (PairJob(k, views[i], views[j], store, constraint, tol, ratio) for k, (i, j) in enumerate(todo))
         pycolmap = _pycolmap()
         t0 = time.perf_counter()
         lengths, samples = np.zeros(3), 0

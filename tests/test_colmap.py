@@ -472,3 +472,16 @@ def test_runner_returns_every_item_once(workers, scheduler):
     finally:
         runner.close()
     assert out == [k * k for k in range(3 * runner.window + 1)]
+
+
+def test_sift_descriptors_are_rootsift(collection):
+    from episeg_cv.collection import detect_features
+
+    kp, des = detect_features(collection.images[0], "sift", 300)
+    assert kp.shape == (300, 2) and des.dtype == np.float32
+    np.testing.assert_allclose((des ** 2).sum(axis=1), 1.0, rtol=1e-5)  # sqrt of an L1-normalised vector
+    for name, width in (("orb", 32), ("akaze", 61)):
+        kp, des = detect_features(collection.images[0], name, 200)
+        assert des.dtype == np.uint8 and des.shape[1] == width and 0 < len(kp) <= 200
+    kp, des = detect_features(np.zeros((50, 50), np.uint8), "sift")
+    assert kp.shape == (0, 2) and des.shape == (0, 128)
