@@ -22,6 +22,7 @@ Conventions
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 import re
@@ -401,9 +402,22 @@ class FeatureStore:
             return z["keypoints"]
 
     def load(self, view: View) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(keypoints, pinhole keypoints, descriptors)`` of ``view`` (run :meth:`ensure` first)."""
-        with np.load(self.path(view)) as z:
-            return z["keypoints"], z["pinhole"], z["descriptors"]
+        """``(keypoints, pinhole keypoints, descriptors)`` of ``view`` (run :meth:`ensure` first).
+
+        The last few images loaded stay in memory in each process (read-only
+        arrays), since consecutive pairs share images.
+        """
+        path = self.path(view)
+        return _load_features(str(path), path.stat().st_mtime_ns)
+
+
+@functools.lru_cache(maxsize=8)
+def _load_features(path: str, mtime_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    with np.load(path) as z:
+        out = z["keypoints"], z["pinhole"], z["descriptors"]
+    for a in out:
+        a.flags.writeable = False
+    return out
 
 
 # --------------------------------------------------------------------------------------
