@@ -54,10 +54,11 @@ FULL = {"n_views": 12, "image_size": (640, 480), "repeats": 5, "dask": True, "me
 QUICK = {"n_views": 6, "image_size": (480, 360), "repeats": 1, "dask": False, "memory_views": (6,),
          "memory_workers": (1,)}
 SEED = 7
-OURS = {  # label -> (constraint, depth_range)
-    "ours, line": ("line", "none"),
-    "ours, segment": ("segment", "none"),
-    "ours, segment + auto depth": ("segment", "auto"),
+OURS = {  # label -> (constraint, depth_range, ratio; None: the library's default)
+    "ours, line": ("line", "none", None),
+    "ours, segment": ("segment", "none", None),
+    "ours, segment + auto depth": ("segment", "auto", None),
+    "ours, segment + auto depth, ratio 0.75": ("segment", "auto", 0.75),
 }
 PYCOLMAP = "pycolmap"
 METHODS = [PYCOLMAP, *OURS]
@@ -150,7 +151,7 @@ def run_pycolmap(paths, views, work: Path, max_features: int) -> dict:
 # Ours
 # --------------------------------------------------------------------------------------
 def run_ours(paths, work: Path, tag: str, constraint: str, depth_range: str, max_features: int,
-             workers: int = 1, scheduler=None, cache_dir=None, triangulate: bool = True) -> dict:
+             workers: int = 1, scheduler=None, cache_dir=None, triangulate: bool = True, ratio=None) -> dict:
     from episeg_cv import colmap
 
     work.mkdir(parents=True, exist_ok=True)
@@ -161,7 +162,7 @@ def run_ours(paths, work: Path, tag: str, constraint: str, depth_range: str, max
     report = colmap.match_model(paths["model"], paths["images"], database, constraint=constraint,
                                 depth_range=depth_range, workers=workers, scheduler=scheduler,
                                 detector="sift", max_features=max_features, overwrite=True, cache_dir=cache,
-                                log=warnings.append)
+                                log=warnings.append, **({} if ratio is None else {"ratio": ratio}))
     t1 = time.perf_counter()
     rec = None
     t2 = t1
@@ -267,7 +268,7 @@ def parallel_once(paths, work: Path, tag: str, reference: dict, cache, **runner)
     """Method 4 once on a runner (features from ``cache``, matching only); ``(entry, correct)``."""
     from episeg_cv import colmap
 
-    constraint, depth_range = OURS["ours, segment + auto depth"]
+    constraint, depth_range, _ = OURS["ours, segment + auto depth"]
     try:
         res = run_ours(paths, work, tag, constraint, depth_range, MAX_FEATURES, cache_dir=cache,
                        triangulate=False, **runner)
@@ -478,9 +479,9 @@ def run(cfg: dict, work: Path) -> dict:
             if m == PYCOLMAP:
                 res = run_pycolmap(paths, views, rw, MAX_FEATURES)
             else:
-                constraint, depth_range = OURS[m]
+                constraint, depth_range, ratio = OURS[m]
                 res = run_ours(paths, rw, m.replace(", ", "_").replace(" ", "_").replace("+", ""),
-                               constraint, depth_range, MAX_FEATURES)
+                               constraint, depth_range, MAX_FEATURES, ratio=ratio)
             q = quality(res["reconstruction"], collection)
             s = res["stats"]
             runs[m].append({**{k: v for k, v in s.items() if k not in ("keypoints", "depth_ranges")}, **q})
