@@ -366,8 +366,8 @@ class FeatureStore:
 
     def _signature(self, view: View) -> str:
         st = (self.image_dir / view.name).stat()
-        return repr((FEATURES_VERSION, SIFT_CONTRAST, st.st_size, st.st_mtime_ns, self.detector, self.max_features, view.camera_model,
-                     tuple(float(p) for p in view.camera_params), view.image_size))
+        return repr((FEATURES_VERSION, SIFT_CONTRAST, st.st_size, st.st_mtime_ns, self.detector, self.max_features,
+                     view.camera_model, tuple(float(p) for p in view.camera_params), view.image_size))
 
     def ensure(self, view: View) -> int:
         """Compute and store the features of ``view`` unless a fresh file exists; the keypoint count."""
