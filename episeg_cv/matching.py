@@ -41,7 +41,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from threadpoolctl import threadpool_limits
+from threadpoolctl import ThreadpoolController
 
 from ._validation import as_nonnegative, as_points
 from .candidates import CandidateIndex, check_constraint
@@ -125,8 +125,20 @@ class _Distances:
     def scores(self, qi: np.ndarray, tj: np.ndarray) -> np.ndarray:
         """``(len(qi), len(tj))`` float32 scores, increasing with distance (squared for L2)."""
         if self.norm in ("l2", "l2sqr"):  # one 2-D product over all rows, then the rows asked for
-            return _squared_from_dot((self.a @ self.b[tj].T)[qi], self.aa[qi][:, None], self.bb[tj][None, :])
+            prod = self.a @ self.b[tj].T
+            if len(qi) != len(prod) or np.any(qi != np.arange(len(prod))):
+                prod = prod[qi]
+            return _squared_from_dot(prod, self.aa[qi][:, None], self.bb[tj][None, :])
         return self.scores_batch(np.asarray(qi)[None], np.asarray(tj)[None])[0]
+
+    def nearest_excluding(self, qi: np.ndarray, tj: np.ndarray, exclude: np.ndarray) -> np.ndarray:
+        """``(len(qi),)`` smallest score of each query ``qi[r]`` over the keypoints ``tj`` (sorted), leaving out
+        ``exclude[r]``; inf when nothing is left."""
+        ps = self.scores(qi, tj)
+        pos = np.minimum(np.searchsorted(tj, exclude), len(tj) - 1)
+        hit = np.flatnonzero(tj[pos] == exclude)
+        ps[hit, pos[hit]] = np.inf
+        return ps.min(axis=1)
 
     def scores_batch(self, Q: np.ndarray, T: np.ndarray) -> np.ndarray:
         """``(G, g, m)`` float32 scores for padded index arrays ``(G, g)`` and ``(G, m)``; -1 gives row 0
@@ -142,18 +154,39 @@ class _Distances:
     def to_distance(self, scores: np.ndarray) -> np.ndarray:
         return np.sqrt(scores) if self.norm == "l2" else scores
 
-    def exact(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
-        """Paired distances ``d(i[k], j[k])`` as float32, computed directly (as ``cv2`` reports them)."""
+    def exact(self, i: np.ndarray, j: np.ndarray, chunk: int = 4096) -> np.ndarray:
+        """Paired distances ``d(i[k], j[k])`` as float32, computed directly (as ``cv2`` reports them).
+
+        In chunks, with the gathered rows in buffers reused from chunk to chunk.
+        """
+        out = np.empty(len(i), dtype=np.float32)
         if len(i) == 0:
-            return np.zeros(0, dtype=np.float32)
+            return out
+        n = min(chunk, len(i))
         if self.norm == "hamming":
-            return np.unpackbits(self.raw1[i] ^ self.raw2[j], axis=1).sum(1).astype(np.float32)
+            buf = np.empty((n, self.raw1.shape[1]), dtype=np.uint8)
+            for a in range(0, len(i), chunk):
+                z = min(a + chunk, len(i))
+                np.bitwise_xor(self.raw1[i[a:z]], self.raw2[j[a:z]], out=buf[:z - a])
+                out[a:z] = np.unpackbits(buf[:z - a], axis=1).sum(1)
+            return out
         # float32 arithmetic, as cv2 does (uint8 descriptors are widened first)
-        diff = np.asarray(self.raw1[i], dtype=np.float32) - np.asarray(self.raw2[j], dtype=np.float32)
-        if self.norm == "l1":
-            return np.abs(diff).sum(1, dtype=np.float32)
-        sq = np.einsum("ij,ij->i", diff, diff)
-        return np.sqrt(sq) if self.norm == "l2" else sq
+        x = np.empty((n, self.raw1.shape[1]), dtype=np.float32)
+        y = np.empty_like(x)
+        for a in range(0, len(i), chunk):
+            z = min(a + chunk, len(i))
+            xa, ya = x[:z - a], y[:z - a]
+            np.copyto(xa, self.raw1[i[a:z]], casting="unsafe") if self.raw1.dtype != np.float32 else \
+                np.take(self.raw1, i[a:z], axis=0, out=xa)
+            np.copyto(ya, self.raw2[j[a:z]], casting="unsafe") if self.raw2.dtype != np.float32 else \
+                np.take(self.raw2, j[a:z], axis=0, out=ya)
+            np.subtract(xa, ya, out=xa)
+            if self.norm == "l1":
+                np.abs(xa, out=xa)
+                out[a:z] = xa.sum(1, dtype=np.float32)
+            else:
+                out[a:z] = np.einsum("ij,ij->i", xa, xa)
+        return np.sqrt(out, out=out) if self.norm == "l2" else out
 
 
 def _squared_from_dot(prod, aa, bb):
@@ -187,6 +220,16 @@ class GuidedResult:
     column_best: np.ndarray
 
 
+_BLAS = []
+
+
+def _one_blas_thread():
+    """A context limiting BLAS to one thread; the controller is made once (making one costs about 1 ms)."""
+    if not _BLAS:
+        _BLAS.append(ThreadpoolController())
+    return _BLAS[0].limit(limits=1, user_api="blas")
+
+
 def _scan(index: CandidateIndex, dist: _Distances, k: int, radius: float | None = None):
     """One pass over the candidate blocks, in padded batches: the k nearest candidates of each query,
     the nearest query of each keypoint, and (with ``radius``) every candidate pair within it."""
@@ -198,16 +241,16 @@ def _scan(index: CandidateIndex, dist: _Distances, k: int, radius: float | None 
     col_i = np.full(n2, -1, dtype=np.intp)
     within = []
     # The blocks are small: BLAS threads only add overhead there (and stall badly on a busy machine).
-    with threadpool_limits(1, user_api="blas"):
+    with _one_blas_thread():
         for Q, T in index.batches():
             m = index.mask_batch(Q, T)  # (G, g, w)
             s = dist.scores_batch(Q, T)
-            np.copyto(s, np.inf, where=~m)
             q_ok = Q >= 0
-            counts[Q[q_ok]] = m.sum(2)[q_ok]
+            counts[Q[q_ok]] = np.count_nonzero(m, axis=2)[q_ok]
             if radius is not None:
                 b, r, c = np.nonzero(m & (s <= radius))
                 within.append((Q[b, r], T[b, c], s[b, r, c]))
+            np.copyto(s, np.inf, where=np.logical_not(m, out=m))
             _column_best(s, Q, T, col_s, col_i)
             _top_k(s, Q, T, k, idx, sc)
     return GuidedResult(idx, sc, counts, col_i), within
@@ -366,8 +409,7 @@ class GuidedMatches:
 
     def keep(self, ratio: float = DEFAULT_RATIO, mutual: bool = True) -> np.ndarray:
         """(K,) bool: which pairs the rule keeps. ``ratio = 1`` disables the ratio test."""
-        keep = (self.ratio < ratio) if ratio < 1 else np.ones(len(self.pairs), dtype=bool)
-        return keep & self.mutual if mutual else keep
+        return _keep(self.ratio, self.mutual, ratio, mutual)
 
     def accept(self, ratio: float = DEFAULT_RATIO, mutual: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """The matches kept by the rule: ``(pairs, distances)``."""
@@ -384,6 +426,22 @@ def guided_matches(descriptors1, descriptors2, points1, points2, geometry, *, no
     (:meth:`GuidedMatches.accept`), which is how ``benchmarks/compare.py``
     sweeps precision-recall curves. Parameters as in :func:`match_descriptors`.
     """
+    i, j, ratio, mutual, counts, dist = _guided(descriptors1, descriptors2, points1, points2, geometry, norm=norm,
+                                                tol=tol, depth_range=depth_range, constraint=constraint, pad=pad,
+                                                cross_check=cross_check, rng=rng, group_size=group_size,
+                                                bucket_size=bucket_size)
+    return GuidedMatches(np.column_stack([i, j]).astype(np.intp), dist.exact(i, j), ratio, mutual, counts)
+
+
+def _keep(ratio_values, mutual_values, ratio, mutual):
+    keep = (ratio_values < ratio) if ratio < 1 else np.ones(len(ratio_values), dtype=bool)
+    return keep & mutual_values if mutual else keep
+
+
+def _guided(descriptors1, descriptors2, points1, points2, geometry, *, norm, tol, depth_range, constraint, pad,
+            cross_check, rng, group_size, bucket_size):
+    """:func:`guided_matches` without the exact distances: ``(i, j, ratio, mutual, counts, distances)``, the
+    last the :class:`_Distances` to compute them with (only for the pairs kept, in :func:`match_descriptors`)."""
     d1, d2, p1, p2, norm, constraint, tol = _prepare(descriptors1, descriptors2, points1, points2,
                                                     geometry, norm, tol, constraint)
     if isinstance(pad, (bool, np.bool_)) or not isinstance(pad, (int, np.integer)) or pad < 0:
@@ -400,9 +458,7 @@ def guided_matches(descriptors1, descriptors2, points1, points2, geometry, *, no
     n_pad = min(int(pad), len(p2))
     if n_pad and len(i):
         pad_j = np.sort(np.random.default_rng(rng).choice(len(p2), n_pad, replace=False))
-        ps = dist.scores(i, pad_j)
-        ps[pad_j[None, :] == j[:, None]] = np.inf
-        s2 = np.minimum(s2, ps.min(axis=1))
+        s2 = np.minimum(s2, dist.nearest_excluding(i, pad_j, j))
     ratio = _ratio(dist.to_distance(s1.astype(np.float64)), dist.to_distance(s2.astype(np.float64)))
     if cross_check:
         # bounds on z1 are not bounds on z2: the reverse pass uses the whole half-line (0, inf)
@@ -412,7 +468,7 @@ def guided_matches(descriptors1, descriptors2, points1, points2, geometry, *, no
         mutual = rev.indices[j, 0] == i
     else:
         mutual = res.column_best[j] == i
-    return GuidedMatches(np.column_stack([i, j]).astype(np.intp), dist.exact(i, j), ratio, mutual, res.counts)
+    return i, j, ratio, mutual, res.counts, dist
 
 
 def _ratio(d1: np.ndarray, d2: np.ndarray) -> np.ndarray:
@@ -467,10 +523,12 @@ def match_descriptors(descriptors1, descriptors2, points1, points2, geometry, *,
     ([[0, 0]], [0.0])
     """
     ratio = check_ratio(ratio, "ratio")
-    gm = guided_matches(descriptors1, descriptors2, points1, points2, geometry, norm=norm, tol=tol,
-                        depth_range=depth_range, constraint=constraint, pad=pad, cross_check=cross_check, rng=rng,
-                        group_size=group_size, bucket_size=bucket_size)
-    return gm.accept(ratio, mutual or cross_check)
+    i, j, r, mu, _, dist = _guided(descriptors1, descriptors2, points1, points2, geometry, norm=norm, tol=tol,
+                                   depth_range=depth_range, constraint=constraint, pad=pad, cross_check=cross_check,
+                                   rng=rng, group_size=group_size, bucket_size=bucket_size)
+    keep = _keep(r, mu, ratio, mutual or cross_check)
+    i, j = i[keep], j[keep]
+    return np.column_stack([i, j]).astype(np.intp), dist.exact(i, j)
 
 
 def check_ratio(value, name: str) -> float:
