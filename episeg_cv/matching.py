@@ -37,6 +37,9 @@ below it, for margin.
 
 from __future__ import annotations
 
+import functools
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
@@ -124,11 +127,9 @@ class _Distances:
 
     def scores(self, qi: np.ndarray, tj: np.ndarray) -> np.ndarray:
         """``(len(qi), len(tj))`` float32 scores, increasing with distance (squared for L2)."""
-        if self.norm in ("l2", "l2sqr"):  # one 2-D product over all rows, then the rows asked for
-            prod = self.a @ self.b[tj].T
-            if len(qi) != len(prod) or np.any(qi != np.arange(len(prod))):
-                prod = prod[qi]
-            return _squared_from_dot(prod, self.aa[qi][:, None], self.bb[tj][None, :])
+        if self.norm in ("l2", "l2sqr"):  # one 2-D product (BLAS)
+            a = self.a if len(qi) == len(self.a) and np.array_equal(qi, np.arange(len(qi))) else self.a[qi]
+            return _squared_from_dot(a @ self.b[tj].T, self.aa[qi][:, None], self.bb[tj][None, :])
         return self.scores_batch(np.asarray(qi)[None], np.asarray(tj)[None])[0]
 
     def nearest_excluding(self, qi: np.ndarray, tj: np.ndarray, exclude: np.ndarray) -> np.ndarray:
@@ -232,7 +233,11 @@ def _one_blas_thread():
 
 def _scan(index: CandidateIndex, dist: _Distances, k: int, radius: float | None = None):
     """One pass over the candidate blocks, in padded batches: the k nearest candidates of each query,
-    the nearest query of each keypoint, and (with ``radius``) every candidate pair within it."""
+    the nearest query of each keypoint, and (with ``radius``) every candidate pair within it.
+
+    The batches are independent, so they are spread over a few threads (numpy and BLAS release the
+    GIL); the results are merged here, in batch order, so they do not depend on the threads.
+    """
     n1, n2 = len(index.points1), len(index.points2)
     idx = np.full((n1, k), -1, dtype=np.intp)
     sc = np.full((n1, k), np.inf, dtype=np.float32)
@@ -240,57 +245,87 @@ def _scan(index: CandidateIndex, dist: _Distances, k: int, radius: float | None 
     col_s = np.full(n2, np.inf, dtype=np.float32)
     col_i = np.full(n2, -1, dtype=np.intp)
     within = []
+    work = functools.partial(_scan_batch, index, dist, k, radius)
     # The blocks are small: BLAS threads only add overhead there (and stall badly on a busy machine).
     with _one_blas_thread():
-        for Q, T in index.batches():
-            m = index.mask_batch(Q, T)  # (G, g, w)
-            s = dist.scores_batch(Q, T)
-            q_ok = Q >= 0
-            counts[Q[q_ok]] = np.count_nonzero(m, axis=2)[q_ok]
-            if radius is not None:
-                b, r, c = np.nonzero(m & (s <= radius))
-                within.append((Q[b, r], T[b, c], s[b, r, c]))
-            np.copyto(s, np.inf, where=np.logical_not(m, out=m))
-            _column_best(s, Q, T, col_s, col_i)
-            _top_k(s, Q, T, k, idx, sc)
+        pool = _pool()
+        for q, n_cand, col, best, pairs in (pool.map(work, index.batches()) if pool else
+                                            map(work, index.batches())):
+            counts[q] = n_cand
+            t, v, qc = col
+            np.minimum.at(col_s, t, v)  # a keypoint may sit in several blocks: the minimum, then its query
+            won = v == col_s[t]
+            col_i[t[won]] = qc[won]
+            kk = best[0].shape[1]
+            idx[q, :kk], sc[q, :kk] = best
+            if pairs is not None:
+                within.append(pairs)
     return GuidedResult(idx, sc, counts, col_i), within
 
 
-def _column_best(s, Q, T, col_s, col_i):
-    """Update the nearest query (``col_i``, score ``col_s``) of every keypoint in ``T``."""
+_POOL = []
+
+
+def _pool():
+    """A pool of worker threads for :func:`_scan`, one per usable core (at most 4), or None on one core."""
+    if not _POOL:
+        try:
+            cores = len(os.sched_getaffinity(0))
+        except AttributeError:  # not on Linux
+            cores = os.cpu_count() or 1
+        workers = min(cores, 4)
+        _POOL.append(ThreadPoolExecutor(workers, thread_name_prefix="episeg") if workers > 1 else None)
+    return _POOL[0]
+
+
+def _scan_batch(index, dist, k, radius, QT):
+    """Scan one batch: ``(queries, counts, (keypoint, score, query) of each column's best,
+    (indices, scores) of each row's k best, pairs within radius or None)``."""
+    Q, T = QT
+    m = index.mask_batch(Q, T)  # (G, g, w)
+    s = dist.scores_batch(Q, T)
+    q_ok = Q >= 0
+    n_cand = np.count_nonzero(m, axis=2)[q_ok]
+    pairs = None
+    if radius is not None:
+        b, r, c = np.nonzero(m & (s <= radius))
+        pairs = (Q[b, r], T[b, c], s[b, r, c])
+    np.copyto(s, np.inf, where=np.logical_not(m, out=m))
+    return Q[q_ok], n_cand, _column_best(s, Q, T), _top_k(s, Q, T, k), pairs
+
+
+def _column_best(s, Q, T):
+    """The nearest row of every real column of the blocks: ``(keypoints, scores, queries)``."""
     r = np.argmin(s, axis=1)  # (G, w)
     v = np.take_along_axis(s, r[:, None, :], axis=1)[:, 0, :]
     ok = np.isfinite(v)
-    t, v, q = T[ok], v[ok], np.take_along_axis(Q, r, axis=1)[ok]
-    # a keypoint may sit in several blocks of the batch: take the minimum, then its query
-    np.minimum.at(col_s, t, v)
-    won = v == col_s[t]
-    col_i[t[won]] = q[won]
+    return T[ok], v[ok], np.take_along_axis(Q, r, axis=1)[ok]
 
 
-def _top_k(s, Q, T, k, idx, sc):
-    """Write the ``k`` smallest entries of each row of ``s`` (nearest first) into ``idx``/``sc`` at rows ``Q``."""
+def _top_k(s, Q, T, k):
+    """The ``k`` smallest entries of each real row of ``s`` (nearest first): ``(indices, scores)``,
+    ``(R, min(k, w))``, -1 and inf where a row has fewer."""
     ok = Q >= 0
-    q = Q[ok]
     kk = min(k, s.shape[2])
     if kk <= 2:  # repeated argmin beats a partition for the common k = 1, 2
+        idx = np.empty((int(ok.sum()), kk), dtype=np.intp)
+        sc = np.empty((len(idx), kk), dtype=np.float32)
         for col in range(kk):
             j = np.argmin(s, axis=2)  # (G, g)
             v = np.take_along_axis(s, j[:, :, None], axis=2)[:, :, 0]
             t = np.take_along_axis(T, j, axis=1)
-            sc[q, col] = v[ok]
-            idx[q, col] = np.where(np.isfinite(v), t, -1)[ok]
+            sc[:, col] = v[ok]
+            idx[:, col] = np.where(np.isfinite(v), t, -1)[ok]
             if col + 1 < kk:
                 np.put_along_axis(s, j[:, :, None], np.inf, axis=2)
-        return
+        return idx, sc
     part = np.argpartition(s, kk - 1, axis=2)[:, :, :kk] if kk < s.shape[2] else \
         np.broadcast_to(np.arange(kk), s.shape[:2] + (kk,))
     ps = np.take_along_axis(s, part, axis=2)
     o = np.argsort(ps, axis=2, kind="stable")
     ps, part = np.take_along_axis(ps, o, axis=2), np.take_along_axis(part, o, axis=2)
     t = np.take_along_axis(np.broadcast_to(T[:, None, :], s.shape), part, axis=2)
-    sc[q, :kk] = ps[ok]
-    idx[q, :kk] = np.where(np.isfinite(ps), t, -1)[ok]
+    return np.where(np.isfinite(ps), t, -1)[ok], ps[ok]
 
 
 def _check_geometry(geometry):
@@ -439,9 +474,14 @@ def _keep(ratio_values, mutual_values, ratio, mutual):
 
 
 def _guided(descriptors1, descriptors2, points1, points2, geometry, *, norm, tol, depth_range, constraint, pad,
-            cross_check, rng, group_size, bucket_size):
+            cross_check, rng, group_size, bucket_size, rule=None):
     """:func:`guided_matches` without the exact distances: ``(i, j, ratio, mutual, counts, distances)``, the
-    last the :class:`_Distances` to compute them with (only for the pairs kept, in :func:`match_descriptors`)."""
+    last the :class:`_Distances` to compute them with (only for the pairs kept, in :func:`match_descriptors`).
+
+    With ``rule = (ratio, mutual)``, the padding references are scored only for the pairs that pass the
+    rule without them (padding can only lower ``d2``, so it can only remove pairs): the others keep
+    their ratio to the second candidate, which the rule rejects anyway.
+    """
     d1, d2, p1, p2, norm, constraint, tol = _prepare(descriptors1, descriptors2, points1, points2,
                                                     geometry, norm, tol, constraint)
     if isinstance(pad, (bool, np.bool_)) or not isinstance(pad, (int, np.integer)) or pad < 0:
@@ -455,11 +495,6 @@ def _guided(descriptors1, descriptors2, points1, points2, geometry, *, norm, tol
     i = np.flatnonzero(res.indices[:, 0] >= 0)
     j = res.indices[i, 0]
     s1, s2 = res.scores[i, 0], res.scores[i, 1]
-    n_pad = min(int(pad), len(p2))
-    if n_pad and len(i):
-        pad_j = np.sort(np.random.default_rng(rng).choice(len(p2), n_pad, replace=False))
-        s2 = np.minimum(s2, dist.nearest_excluding(i, pad_j, j))
-    ratio = _ratio(dist.to_distance(s1.astype(np.float64)), dist.to_distance(s2.astype(np.float64)))
     if cross_check:
         # bounds on z1 are not bounds on z2: the reverse pass uses the whole half-line (0, inf)
         back = CandidateIndex(geometry.inverse(), p2, p1, tol=tol, constraint=constraint, group_size=group_size,
@@ -468,6 +503,15 @@ def _guided(descriptors1, descriptors2, points1, points2, geometry, *, norm, tol
         mutual = rev.indices[j, 0] == i
     else:
         mutual = res.column_best[j] == i
+    n_pad = min(int(pad), len(p2))
+    if n_pad and len(i):
+        pad_j = np.sort(np.random.default_rng(rng).choice(len(p2), n_pad, replace=False))
+        r = np.arange(len(i)) if rule is None else \
+            np.flatnonzero(_keep(_ratio(dist.to_distance(s1.astype(np.float64)),
+                                        dist.to_distance(s2.astype(np.float64))), mutual, *rule))
+        s2 = s2.copy()
+        s2[r] = np.minimum(s2[r], dist.nearest_excluding(i[r], pad_j, j[r]))
+    ratio = _ratio(dist.to_distance(s1.astype(np.float64)), dist.to_distance(s2.astype(np.float64)))
     return i, j, ratio, mutual, res.counts, dist
 
 
@@ -525,7 +569,8 @@ def match_descriptors(descriptors1, descriptors2, points1, points2, geometry, *,
     ratio = check_ratio(ratio, "ratio")
     i, j, r, mu, _, dist = _guided(descriptors1, descriptors2, points1, points2, geometry, norm=norm, tol=tol,
                                    depth_range=depth_range, constraint=constraint, pad=pad, cross_check=cross_check,
-                                   rng=rng, group_size=group_size, bucket_size=bucket_size)
+                                   rng=rng, group_size=group_size, bucket_size=bucket_size,
+                                   rule=(ratio, mutual or cross_check))
     keep = _keep(r, mu, ratio, mutual or cross_check)
     i, j = i[keep], j[keep]
     return np.column_stack([i, j]).astype(np.intp), dist.exact(i, j)
@@ -569,13 +614,23 @@ def filter_pairs(pairs, points1, points2, geometry, *, tol=2.0, depth_range=(0.0
     if constraint == "none":
         return np.ones(len(pairs), dtype=bool)
     seg = geometry.segments(p1, depth_range, margin=tol)
-    i, y = pairs[:, 0], p2[pairs[:, 1]]
+    i, j = pairs[:, 0], pairs[:, 1]
+    # 1-D gathers (one column at a time) are several times faster than gathering rows of (N, 2) arrays
+    y0, y1 = np.ascontiguousarray(p2[:, 0])[j], np.ascontiguousarray(p2[:, 1])[j]
+    l0, l1, l2 = (np.ascontiguousarray(seg.line[:, c])[i] for c in range(3))
+    with np.errstate(invalid="ignore"):
+        line_distance = np.abs(l0 * y0 + l1 * y1 + l2)
     if constraint == "line":
-        line = seg.line[i]
-        with np.errstate(invalid="ignore"):
-            return np.abs(line[:, 0] * y[:, 0] + line[:, 1] * y[:, 1] + line[:, 2]) <= tol  # NaN line: False
-    d = _point_segment_distance(y, np.nan_to_num(seg.start)[i], np.nan_to_num(seg.end)[i])
-    return seg.valid[i] & (d <= tol)
+        return line_distance <= tol  # NaN line: False
+    # A segment lies on its line, so only pairs near the line need the distance to the segment; the
+    # margin covers rounding, and a NaN line (undefined: the query maps to the epipole) is kept.
+    near = np.flatnonzero(~(line_distance > tol * (1 + 1e-6) + 1e-6) & seg.valid[i])
+    keep = np.zeros(len(pairs), dtype=bool)
+    if near.size:
+        ii = i[near]
+        d = _point_segment_distance(p2[j[near]], np.nan_to_num(seg.start[ii]), np.nan_to_num(seg.end[ii]))
+        keep[near] = d <= tol
+    return keep
 
 
 def _check_pairs(pairs, points1, points2):
