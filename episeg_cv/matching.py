@@ -37,9 +37,6 @@ below it, for margin.
 
 from __future__ import annotations
 
-import functools
-import os
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
@@ -155,39 +152,46 @@ class _Distances:
     def to_distance(self, scores: np.ndarray) -> np.ndarray:
         return np.sqrt(scores) if self.norm == "l2" else scores
 
-    def exact(self, i: np.ndarray, j: np.ndarray, chunk: int = 4096) -> np.ndarray:
-        """Paired distances ``d(i[k], j[k])`` as float32, computed directly (as ``cv2`` reports them).
+    def exact(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+        """Paired distances ``d(i[k], j[k])`` as float32, computed directly (as ``cv2`` reports them)."""
+        return _exact(self.raw1, self.raw2, self.norm, i, j)
 
-        In chunks, with the gathered rows in buffers reused from chunk to chunk.
-        """
-        out = np.empty(len(i), dtype=np.float32)
-        if len(i) == 0:
-            return out
-        n = min(chunk, len(i))
-        if self.norm == "hamming":
-            buf = np.empty((n, self.raw1.shape[1]), dtype=np.uint8)
-            for a in range(0, len(i), chunk):
-                z = min(a + chunk, len(i))
-                np.bitwise_xor(self.raw1[i[a:z]], self.raw2[j[a:z]], out=buf[:z - a])
-                out[a:z] = np.unpackbits(buf[:z - a], axis=1).sum(1)
-            return out
-        # float32 arithmetic, as cv2 does (uint8 descriptors are widened first)
-        x = np.empty((n, self.raw1.shape[1]), dtype=np.float32)
-        y = np.empty_like(x)
+
+def _exact(raw1: np.ndarray, raw2: np.ndarray, norm: str, i: np.ndarray, j: np.ndarray,
+           chunk: int = 4096) -> np.ndarray:
+    """Paired distances ``d(i[k], j[k])`` as float32, computed directly (as ``cv2`` reports them).
+
+    In chunks, with the gathered rows in buffers reused from chunk to chunk.
+    """
+    out = np.empty(len(i), dtype=np.float32)
+    if len(i) == 0:
+        return out
+    n = min(chunk, len(i))
+    if norm == "hamming":
+        buf = np.empty((n, raw1.shape[1]), dtype=np.uint8)
         for a in range(0, len(i), chunk):
             z = min(a + chunk, len(i))
-            xa, ya = x[:z - a], y[:z - a]
-            np.copyto(xa, self.raw1[i[a:z]], casting="unsafe") if self.raw1.dtype != np.float32 else \
-                np.take(self.raw1, i[a:z], axis=0, out=xa)
-            np.copyto(ya, self.raw2[j[a:z]], casting="unsafe") if self.raw2.dtype != np.float32 else \
-                np.take(self.raw2, j[a:z], axis=0, out=ya)
-            np.subtract(xa, ya, out=xa)
-            if self.norm == "l1":
-                np.abs(xa, out=xa)
-                out[a:z] = xa.sum(1, dtype=np.float32)
+            np.bitwise_xor(raw1[i[a:z]], raw2[j[a:z]], out=buf[:z - a])
+            out[a:z] = np.unpackbits(buf[:z - a], axis=1).sum(1)
+        return out
+    # float32 arithmetic, as cv2 does (uint8 descriptors are widened first)
+    x = np.empty((n, raw1.shape[1]), dtype=np.float32)
+    y = np.empty_like(x)
+    for a in range(0, len(i), chunk):
+        z = min(a + chunk, len(i))
+        xa, ya = x[:z - a], y[:z - a]
+        for raw, rows, buf in ((raw1, i[a:z], xa), (raw2, j[a:z], ya)):
+            if raw.dtype == np.float32:
+                np.take(raw, rows, axis=0, out=buf)
             else:
-                out[a:z] = np.einsum("ij,ij->i", xa, xa)
-        return np.sqrt(out, out=out) if self.norm == "l2" else out
+                np.copyto(buf, raw[rows], casting="unsafe")
+        np.subtract(xa, ya, out=xa)
+        if norm == "l1":
+            np.abs(xa, out=xa)
+            out[a:z] = xa.sum(1, dtype=np.float32)
+        else:
+            out[a:z] = np.einsum("ij,ij->i", xa, xa)
+    return np.sqrt(out, out=out) if norm == "l2" else out
 
 
 def _squared_from_dot(prod, aa, bb):
@@ -233,11 +237,7 @@ def _one_blas_thread():
 
 def _scan(index: CandidateIndex, dist: _Distances, k: int, radius: float | None = None):
     """One pass over the candidate blocks, in padded batches: the k nearest candidates of each query,
-    the nearest query of each keypoint, and (with ``radius``) every candidate pair within it.
-
-    The batches are independent, so they are spread over a few threads (numpy and BLAS release the
-    GIL); the results are merged here, in batch order, so they do not depend on the threads.
-    """
+    the nearest query of each keypoint, and (with ``radius``) every candidate pair within it."""
     n1, n2 = len(index.points1), len(index.points2)
     idx = np.full((n1, k), -1, dtype=np.intp)
     sc = np.full((n1, k), np.inf, dtype=np.float32)
@@ -245,87 +245,57 @@ def _scan(index: CandidateIndex, dist: _Distances, k: int, radius: float | None 
     col_s = np.full(n2, np.inf, dtype=np.float32)
     col_i = np.full(n2, -1, dtype=np.intp)
     within = []
-    work = functools.partial(_scan_batch, index, dist, k, radius)
     # The blocks are small: BLAS threads only add overhead there (and stall badly on a busy machine).
     with _one_blas_thread():
-        pool = _pool()
-        for q, n_cand, col, best, pairs in (pool.map(work, index.batches()) if pool else
-                                            map(work, index.batches())):
-            counts[q] = n_cand
-            t, v, qc = col
-            np.minimum.at(col_s, t, v)  # a keypoint may sit in several blocks: the minimum, then its query
-            won = v == col_s[t]
-            col_i[t[won]] = qc[won]
-            kk = best[0].shape[1]
-            idx[q, :kk], sc[q, :kk] = best
-            if pairs is not None:
-                within.append(pairs)
+        for Q, T in index.batches():
+            m = index.mask_batch(Q, T)  # (G, g, w)
+            s = dist.scores_batch(Q, T)
+            q_ok = Q >= 0
+            counts[Q[q_ok]] = np.count_nonzero(m, axis=2)[q_ok]
+            if radius is not None:
+                b, r, c = np.nonzero(m & (s <= radius))
+                within.append((Q[b, r], T[b, c], s[b, r, c]))
+            np.copyto(s, np.inf, where=np.logical_not(m, out=m))
+            _column_best(s, Q, T, col_s, col_i)
+            _top_k(s, Q, T, k, idx, sc)
     return GuidedResult(idx, sc, counts, col_i), within
 
 
-_POOL = []
-
-
-def _pool():
-    """A pool of worker threads for :func:`_scan`, one per usable core (at most 4), or None on one core."""
-    if not _POOL:
-        try:
-            cores = len(os.sched_getaffinity(0))
-        except AttributeError:  # not on Linux
-            cores = os.cpu_count() or 1
-        workers = min(cores, 4)
-        _POOL.append(ThreadPoolExecutor(workers, thread_name_prefix="episeg") if workers > 1 else None)
-    return _POOL[0]
-
-
-def _scan_batch(index, dist, k, radius, QT):
-    """Scan one batch: ``(queries, counts, (keypoint, score, query) of each column's best,
-    (indices, scores) of each row's k best, pairs within radius or None)``."""
-    Q, T = QT
-    m = index.mask_batch(Q, T)  # (G, g, w)
-    s = dist.scores_batch(Q, T)
-    q_ok = Q >= 0
-    n_cand = np.count_nonzero(m, axis=2)[q_ok]
-    pairs = None
-    if radius is not None:
-        b, r, c = np.nonzero(m & (s <= radius))
-        pairs = (Q[b, r], T[b, c], s[b, r, c])
-    np.copyto(s, np.inf, where=np.logical_not(m, out=m))
-    return Q[q_ok], n_cand, _column_best(s, Q, T), _top_k(s, Q, T, k), pairs
-
-
-def _column_best(s, Q, T):
-    """The nearest row of every real column of the blocks: ``(keypoints, scores, queries)``."""
+def _column_best(s, Q, T, col_s, col_i):
+    """Update the nearest query (``col_i``, score ``col_s``) of every keypoint in ``T``."""
     r = np.argmin(s, axis=1)  # (G, w)
     v = np.take_along_axis(s, r[:, None, :], axis=1)[:, 0, :]
     ok = np.isfinite(v)
-    return T[ok], v[ok], np.take_along_axis(Q, r, axis=1)[ok]
+    t, v, q = T[ok], v[ok], np.take_along_axis(Q, r, axis=1)[ok]
+    # a keypoint may sit in several blocks of the batch: take the minimum, then its query
+    np.minimum.at(col_s, t, v)
+    won = v == col_s[t]
+    col_i[t[won]] = q[won]
 
 
-def _top_k(s, Q, T, k):
-    """The ``k`` smallest entries of each real row of ``s`` (nearest first): ``(indices, scores)``,
-    ``(R, min(k, w))``, -1 and inf where a row has fewer."""
+def _top_k(s, Q, T, k, idx, sc):
+    """Write the ``k`` smallest entries of each row of ``s`` (nearest first) into ``idx``/``sc`` at rows ``Q``."""
     ok = Q >= 0
+    q = Q[ok]
     kk = min(k, s.shape[2])
     if kk <= 2:  # repeated argmin beats a partition for the common k = 1, 2
-        idx = np.empty((int(ok.sum()), kk), dtype=np.intp)
-        sc = np.empty((len(idx), kk), dtype=np.float32)
         for col in range(kk):
             j = np.argmin(s, axis=2)  # (G, g)
             v = np.take_along_axis(s, j[:, :, None], axis=2)[:, :, 0]
             t = np.take_along_axis(T, j, axis=1)
-            sc[:, col] = v[ok]
-            idx[:, col] = np.where(np.isfinite(v), t, -1)[ok]
+            sc[q, col] = v[ok]
+            idx[q, col] = np.where(np.isfinite(v), t, -1)[ok]
             if col + 1 < kk:
                 np.put_along_axis(s, j[:, :, None], np.inf, axis=2)
-        return idx, sc
+        return
     part = np.argpartition(s, kk - 1, axis=2)[:, :, :kk] if kk < s.shape[2] else \
         np.broadcast_to(np.arange(kk), s.shape[:2] + (kk,))
     ps = np.take_along_axis(s, part, axis=2)
     o = np.argsort(ps, axis=2, kind="stable")
     ps, part = np.take_along_axis(ps, o, axis=2), np.take_along_axis(part, o, axis=2)
     t = np.take_along_axis(np.broadcast_to(T[:, None, :], s.shape), part, axis=2)
-    return np.where(np.isfinite(ps), t, -1)[ok], ps[ok]
+    sc[q, :kk] = ps[ok]
+    idx[q, :kk] = np.where(np.isfinite(ps), t, -1)[ok]
 
 
 def _check_geometry(geometry):

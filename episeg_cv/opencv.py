@@ -16,7 +16,7 @@ import numpy as np
 from ._validation import as_depth_range, as_nonnegative, as_points
 from .candidates import check_constraint
 from .geometry import TwoViewGeometry
-from .matching import (DEFAULT_PAD, DEFAULT_RATIO, _check_k, _check_points, _Distances, check_descriptors,
+from .matching import (DEFAULT_PAD, DEFAULT_RATIO, _check_k, _check_points, _exact, check_descriptors,
                        check_norm, check_ratio,
                        explain_pairs, filter_pairs, knn_descriptors, match_descriptors, radius_descriptors)
 
@@ -184,7 +184,7 @@ class SegmentMatcher:
         res = knn_descriptors(d1, d2, p1, p2, self.geometry, k=k, **self._kw())
         i, col = np.nonzero(res.indices >= 0)  # row-major: by query, nearest first
         j = res.indices[i, col]
-        return _per_query(len(d1), np.column_stack([i, j]), _Distances(d1, d2, self._norm).exact(i, j))
+        return _per_query(len(d1), np.column_stack([i, j]), _exact(d1, d2, self._norm, i, j))
 
     def radiusMatch(self, queryDescriptors, trainDescriptors, queryKeypoints, trainKeypoints, maxDistance) -> list:
         """All candidates within ``maxDistance`` of each query, nearest first: one list per query."""
