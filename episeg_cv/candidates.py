@@ -224,9 +224,8 @@ class CandidateIndex:
                                   line[:, 0] * self._c[0] + line[:, 1] * self._c[1] + line[:, 2]])
             q_phi = np.mod(np.arctan2(ln @ v, ln @ u), np.pi)
             q_phi[~np.any(line != 0, axis=1)] = 0.0  # undefined line: the point is the epipole itself
-            order = np.argsort(q_phi, kind="stable")
             n_buckets = max(1, int(np.ceil(q_ok.size / bucket_size)))
-            cuts = q_phi[order][(np.arange(1, n_buckets) * q_ok.size) // n_buckets]
+            cuts = np.sort(q_phi)[(np.arange(1, n_buckets) * q_ok.size) // n_buckets]
             edges = np.concatenate([[0.0], cuts, [np.pi]])
             # keypoints: the interval of pencil angles of lines within tol of them
             phi_y, (l0, l1) = self._phi_of_points(e, u, v, y)

@@ -84,10 +84,7 @@ def check_descriptors(descriptors1, descriptors2, norm: str, names=("descriptors
                 d = d.astype(np.uint8)
         if d.ndim != 2:
             raise ValueError(f"{name} must have shape (N, D), got shape {d.shape}")
-        # one float64 sum is finite exactly when every entry is (float32 entries cannot overflow it);
-        # only if it is not is the (N, D) boolean test run, to tell an overflowing float64 sum apart
-        if d.dtype != np.uint8 and d.size and not np.isfinite(d.sum(dtype=np.float64)) \
-                and not np.all(np.isfinite(d)):
+        if d.dtype != np.uint8 and d.size and not _all_finite(d):
             raise ValueError(f"{name} must be finite, got NaN or inf")
         out.append(d)
     d1, d2 = out
@@ -100,6 +97,18 @@ def check_descriptors(descriptors1, descriptors2, norm: str, names=("descriptors
         if d.shape[0] and norm == "hamming" and d.dtype != np.uint8:
             raise TypeError(f"{name}: NORM_HAMMING needs uint8 (binary) descriptors, got {d.dtype}")
     return d1, d2
+
+
+def _all_finite(d: np.ndarray) -> bool:
+    """``np.all(np.isfinite(d))`` without the ``(N, D)`` boolean array when the answer is yes.
+
+    A float64 sum is finite exactly when every entry is, except when finite float64 entries overflow
+    it (float32 ones cannot): then the entrywise test decides.
+    """
+    with np.errstate(over="ignore", invalid="ignore"):
+        if np.isfinite(d.sum(dtype=np.float64)):
+            return True
+    return bool(np.all(np.isfinite(d)))
 
 
 def _check_points(points, descriptors, name, dname):
