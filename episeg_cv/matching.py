@@ -646,8 +646,8 @@ def _check_pairs(pairs, points1, points2):
     if arr.ndim != 2 or arr.shape[1] != 2 or not (np.issubdtype(arr.dtype, np.integer)):
         raise ValueError(f"pairs must be a (K, 2) integer array, got shape {arr.shape} and dtype {arr.dtype}")
     for col, n, name in ((0, len(p1), "points1"), (1, len(p2), "points2")):
-        bad = (arr[:, col] < 0) | (arr[:, col] >= n)
-        if bad.any():
+        if len(arr) and (arr[:, col].min() < 0 or arr[:, col].max() >= n):  # then find the first offender
+            bad = (arr[:, col] < 0) | (arr[:, col] >= n)
             raise ValueError(f"match index {int(arr[bad, col][0])} out of range for {name} with {n} keypoints")
     return arr.astype(np.intp), p1, p2
 

@@ -242,9 +242,10 @@ def _flatten(matches):
         raise TypeError("matches must be a list of cv2.DMatch or a list of lists of cv2.DMatch, got None")
     matches = list(matches)
     # type() of every item in C, then the few distinct types in Python: far faster than isinstance per item
-    nested = any(issubclass(t, (list, tuple)) for t in set(map(type, matches)))
+    types = set(map(type, matches))
+    nested = any(issubclass(t, (list, tuple)) for t in types)
     flat = list(chain.from_iterable(matches)) if nested else matches
-    if not all(issubclass(t, cv2.DMatch) for t in set(map(type, flat))):
+    if not all(issubclass(t, cv2.DMatch) for t in (set(map(type, flat)) if nested else types)):
         for m in flat:
             if not isinstance(m, cv2.DMatch):
                 raise TypeError(f"matches must hold cv2.DMatch objects, got {type(m).__name__}")
