@@ -100,15 +100,9 @@ def check_descriptors(descriptors1, descriptors2, norm: str, names=("descriptors
 
 
 def _all_finite(d: np.ndarray) -> bool:
-    """``np.all(np.isfinite(d))`` without the ``(N, D)`` boolean array when the answer is yes.
-
-    A float64 sum is finite exactly when every entry is, except when finite float64 entries overflow
-    it (float32 ones cannot): then the entrywise test decides.
-    """
-    with np.errstate(over="ignore", invalid="ignore"):
-        if np.isfinite(d.sum(dtype=np.float64)):
-            return True
-    return bool(np.all(np.isfinite(d)))
+    """``np.all(np.isfinite(d))`` without an ``(N, D)`` boolean array: min and max propagate NaN, and
+    an infinity is one of them."""
+    return bool(np.isfinite(d.min()) and np.isfinite(d.max()))
 
 
 def _check_points(points, descriptors, name, dname):
@@ -165,7 +159,7 @@ class _Distances:
         prod = np.empty((n, len(tj)), dtype=np.float32)
         for a in range(0, len(qi), chunk):
             z = min(a + chunk, len(qi))
-            np.take(self.a, qi[a:z], axis=0, out=rows[:z - a])
+            np.take(self.a, qi[a:z], axis=0, out=rows[:z - a], mode="clip")
             p = np.matmul(rows[:z - a], bt, out=prod[:z - a])
             _squared_from_dot(p, self.aa[qi[a:z]][:, None], bb)
             r = np.flatnonzero(hit[a:z])
@@ -217,7 +211,7 @@ def _exact(raw1: np.ndarray, raw2: np.ndarray, norm: str, i: np.ndarray, j: np.n
         xa, ya = x[:z - a], y[:z - a]
         for raw, rows, buf in ((raw1, i[a:z], xa), (raw2, j[a:z], ya)):
             if raw.dtype == np.float32:
-                np.take(raw, rows, axis=0, out=buf)
+                np.take(raw, rows, axis=0, out=buf, mode="clip")  # (the default 'raise' buffers)
             else:
                 np.copyto(buf, raw[rows], casting="unsafe")
         np.subtract(xa, ya, out=xa)
