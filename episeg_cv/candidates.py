@@ -127,12 +127,18 @@ class CandidateIndex:
             n, off_n = self._line[:, :2], -self._line[:, 2]
         else:
             off_n = (n * self._P).sum(1)
-        # each with one extra last row, selected by the padding index -1, that is never a candidate
+        # per query (one extra last row, selected by the padding index -1, that is never a candidate):
+        # across = n.y - off_n, and along = |d.y - mid| - half, with mid the segment's middle and half its
+        # half-length, so the distance to the segment is hypot(across, max(along, 0))
         far = 1e12
-        self._frame = np.concatenate([np.stack([n, d], axis=1), np.zeros((1, 2, 2))])  # (N1 + 1, 2, 2)
-        self._off = np.vstack([np.column_stack([off_n, (d * self._P).sum(1)]), [[far, 0.0]]])  # (N1 + 1, 2)
-        self._length = np.r_[length, 0.0]
-        self._points2_padded = np.vstack([self.points2, [[far, far]]])
+        self._n0, self._n1 = np.r_[n[:, 0], 0.0], np.r_[n[:, 1], 0.0]
+        self._off_n = np.r_[off_n, far]
+        self._d0, self._d1 = np.r_[d[:, 0], 0.0], np.r_[d[:, 1], 0.0]
+        self._half = np.r_[0.5 * length, 0.0]
+        self._mid = np.r_[(d * self._P).sum(1) + 0.5 * length, 0.0]
+        self._y0 = np.r_[self.points2[:, 0], far]
+        self._y1 = np.r_[self.points2[:, 1], far]
+        self._tol2 = self.tol * self.tol * (1 + 1e-9) + 1e-12
         self._groups = self._build(max(int(group_size), 1), max(int(bucket_size), 1))
 
     @property
@@ -218,9 +224,8 @@ class CandidateIndex:
                                   line[:, 0] * self._c[0] + line[:, 1] * self._c[1] + line[:, 2]])
             q_phi = np.mod(np.arctan2(ln @ v, ln @ u), np.pi)
             q_phi[~np.any(line != 0, axis=1)] = 0.0  # undefined line: the point is the epipole itself
-            order = np.argsort(q_phi, kind="stable")
             n_buckets = max(1, int(np.ceil(q_ok.size / bucket_size)))
-            cuts = q_phi[order][(np.arange(1, n_buckets) * q_ok.size) // n_buckets]
+            cuts = np.sort(q_phi)[(np.arange(1, n_buckets) * q_ok.size) // n_buckets]
             edges = np.concatenate([[0.0], cuts, [np.pi]])
             # keypoints: the interval of pencil angles of lines within tol of them
             phi_y, (l0, l1) = self._phi_of_points(e, u, v, y)
@@ -313,24 +318,22 @@ class CandidateIndex:
 
     def mask_batch(self, Q: np.ndarray, T: np.ndarray) -> np.ndarray:
         """``(G, g, m)`` bool candidate test for padded index arrays from :meth:`batches` (-1 is never a candidate)."""
-        G, g = Q.shape
-        y = self._points2_padded[T]  # (G, m, 2)
-        proj = self._frame[Q].reshape(G, 2 * g, 2) @ y.transpose(0, 2, 1)  # (G, 2g, m): n.y, d.y interleaved
-        off = self._off[Q]  # (G, g, 2)
-        across = proj[:, 0::2]
-        across -= off[:, :, 0:1]
+        y0, y1 = self._y0[T][:, None, :], self._y1[T][:, None, :]  # (G, 1, m)
+        across = self._n0[Q][:, :, None] * y0  # (G, g, m)
+        across += self._n1[Q][:, :, None] * y1
+        across -= self._off_n[Q][:, :, None]
         if self.constraint == "line":
             return np.abs(across, out=across) <= self.tol
-        along = proj[:, 1::2]
-        along -= off[:, :, 1:2]
-        over = along - self._length[Q][:, :, None]  # beyond the far end
-        np.negative(along, out=along)  # before the near end
-        np.maximum(over, along, out=over)
-        np.maximum(over, 0.0, out=over)
+        along = self._d0[Q][:, :, None] * y0
+        along += self._d1[Q][:, :, None] * y1
+        along -= self._mid[Q][:, :, None]
+        np.abs(along, out=along)
+        along -= self._half[Q][:, :, None]  # > 0 beyond an end of the segment
+        np.maximum(along, 0.0, out=along)
+        np.square(along, out=along)
         np.square(across, out=across)
-        np.square(over, out=over)
-        across += over
-        return across <= self.tol * self.tol * (1 + 1e-9) + 1e-12
+        across += along
+        return across <= self._tol2
 
 
 @dataclass(frozen=True)

@@ -41,7 +41,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from threadpoolctl import threadpool_limits
+from threadpoolctl import ThreadpoolController
 
 from ._validation import as_nonnegative, as_points
 from .candidates import CandidateIndex, check_constraint
@@ -84,7 +84,7 @@ def check_descriptors(descriptors1, descriptors2, norm: str, names=("descriptors
                 d = d.astype(np.uint8)
         if d.ndim != 2:
             raise ValueError(f"{name} must have shape (N, D), got shape {d.shape}")
-        if d.dtype != np.uint8 and d.size and not np.all(np.isfinite(d)):
+        if d.dtype != np.uint8 and d.size and not _all_finite(d):
             raise ValueError(f"{name} must be finite, got NaN or inf")
         out.append(d)
     d1, d2 = out
@@ -97,6 +97,12 @@ def check_descriptors(descriptors1, descriptors2, norm: str, names=("descriptors
         if d.shape[0] and norm == "hamming" and d.dtype != np.uint8:
             raise TypeError(f"{name}: NORM_HAMMING needs uint8 (binary) descriptors, got {d.dtype}")
     return d1, d2
+
+
+def _all_finite(d: np.ndarray) -> bool:
+    """``np.all(np.isfinite(d))`` without an ``(N, D)`` boolean array: min and max propagate NaN, and
+    an infinity is one of them."""
+    return bool(np.isfinite(d.min()) and np.isfinite(d.max()))
 
 
 def _check_points(points, descriptors, name, dname):
@@ -124,9 +130,42 @@ class _Distances:
 
     def scores(self, qi: np.ndarray, tj: np.ndarray) -> np.ndarray:
         """``(len(qi), len(tj))`` float32 scores, increasing with distance (squared for L2)."""
-        if self.norm in ("l2", "l2sqr"):  # one 2-D product over all rows, then the rows asked for
-            return _squared_from_dot((self.a @ self.b[tj].T)[qi], self.aa[qi][:, None], self.bb[tj][None, :])
+        if self.norm in ("l2", "l2sqr"):  # one 2-D product (BLAS)
+            a = self.a if len(qi) == len(self.a) and np.array_equal(qi, np.arange(len(qi))) else self.a[qi]
+            return _squared_from_dot(a @ self.b[tj].T, self.aa[qi][:, None], self.bb[tj][None, :])
         return self.scores_batch(np.asarray(qi)[None], np.asarray(tj)[None])[0]
+
+    def nearest_excluding(self, qi: np.ndarray, tj: np.ndarray, exclude: np.ndarray, chunk: int = 1024) -> np.ndarray:
+        """``(len(qi),)`` smallest score of each query ``qi[r]`` over the keypoints ``tj`` (sorted), leaving out
+        ``exclude[r]``; inf when nothing is left.
+
+        Row chunks with reused buffers: the same arithmetic as :meth:`scores`, without two fresh
+        ``len(qi) x len(tj)`` arrays (their page faults cost more than the product on a VM).
+        """
+        out = np.empty(len(qi), dtype=np.float32)
+        if len(qi) == 0 or len(tj) == 0:
+            out.fill(np.inf)
+            return out
+        pos = np.minimum(np.searchsorted(tj, exclude), len(tj) - 1)
+        hit = tj[pos] == exclude
+        if self.norm not in ("l2", "l2sqr"):
+            ps = self.scores(qi, tj)
+            ps[np.flatnonzero(hit), pos[hit]] = np.inf
+            return ps.min(axis=1)
+        bt = np.ascontiguousarray(self.b[tj].T)
+        bb = self.bb[tj][None, :]
+        n = min(chunk, len(qi))
+        rows = np.empty((n, self.a.shape[1]), dtype=self.a.dtype)
+        prod = np.empty((n, len(tj)), dtype=np.float32)
+        for a in range(0, len(qi), chunk):
+            z = min(a + chunk, len(qi))
+            np.take(self.a, qi[a:z], axis=0, out=rows[:z - a], mode="clip")
+            p = np.matmul(rows[:z - a], bt, out=prod[:z - a])
+            _squared_from_dot(p, self.aa[qi[a:z]][:, None], bb)
+            r = np.flatnonzero(hit[a:z])
+            p[r, pos[a:z][r]] = np.inf
+            np.min(p, axis=1, out=out[a:z])
+        return out
 
     def scores_batch(self, Q: np.ndarray, T: np.ndarray) -> np.ndarray:
         """``(G, g, m)`` float32 scores for padded index arrays ``(G, g)`` and ``(G, m)``; -1 gives row 0
@@ -144,16 +183,44 @@ class _Distances:
 
     def exact(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
         """Paired distances ``d(i[k], j[k])`` as float32, computed directly (as ``cv2`` reports them)."""
-        if len(i) == 0:
-            return np.zeros(0, dtype=np.float32)
-        if self.norm == "hamming":
-            return np.unpackbits(self.raw1[i] ^ self.raw2[j], axis=1).sum(1).astype(np.float32)
-        # float32 arithmetic, as cv2 does (uint8 descriptors are widened first)
-        diff = np.asarray(self.raw1[i], dtype=np.float32) - np.asarray(self.raw2[j], dtype=np.float32)
-        if self.norm == "l1":
-            return np.abs(diff).sum(1, dtype=np.float32)
-        sq = np.einsum("ij,ij->i", diff, diff)
-        return np.sqrt(sq) if self.norm == "l2" else sq
+        return _exact(self.raw1, self.raw2, self.norm, i, j)
+
+
+def _exact(raw1: np.ndarray, raw2: np.ndarray, norm: str, i: np.ndarray, j: np.ndarray,
+           chunk: int = 4096) -> np.ndarray:
+    """Paired distances ``d(i[k], j[k])`` as float32, computed directly (as ``cv2`` reports them).
+
+    In chunks, with the gathered rows in buffers reused from chunk to chunk.
+    """
+    out = np.empty(len(i), dtype=np.float32)
+    if len(i) == 0:
+        return out
+    n = min(chunk, len(i))
+    if norm == "hamming":
+        buf = np.empty((n, raw1.shape[1]), dtype=np.uint8)
+        for a in range(0, len(i), chunk):
+            z = min(a + chunk, len(i))
+            np.bitwise_xor(raw1[i[a:z]], raw2[j[a:z]], out=buf[:z - a])
+            out[a:z] = np.unpackbits(buf[:z - a], axis=1).sum(1)
+        return out
+    # float32 arithmetic, as cv2 does (uint8 descriptors are widened first)
+    x = np.empty((n, raw1.shape[1]), dtype=np.float32)
+    y = np.empty_like(x)
+    for a in range(0, len(i), chunk):
+        z = min(a + chunk, len(i))
+        xa, ya = x[:z - a], y[:z - a]
+        for raw, rows, buf in ((raw1, i[a:z], xa), (raw2, j[a:z], ya)):
+            if raw.dtype == np.float32:
+                np.take(raw, rows, axis=0, out=buf, mode="clip")  # (the default 'raise' buffers)
+            else:
+                np.copyto(buf, raw[rows], casting="unsafe")
+        np.subtract(xa, ya, out=xa)
+        if norm == "l1":
+            np.abs(xa, out=xa)
+            out[a:z] = xa.sum(1, dtype=np.float32)
+        else:
+            out[a:z] = np.einsum("ij,ij->i", xa, xa)
+    return np.sqrt(out, out=out) if norm == "l2" else out
 
 
 def _squared_from_dot(prod, aa, bb):
@@ -187,6 +254,16 @@ class GuidedResult:
     column_best: np.ndarray
 
 
+_BLAS = []
+
+
+def _one_blas_thread():
+    """A context limiting BLAS to one thread; the controller is made once (making one costs about 1 ms)."""
+    if not _BLAS:
+        _BLAS.append(ThreadpoolController())
+    return _BLAS[0].limit(limits=1, user_api="blas")
+
+
 def _scan(index: CandidateIndex, dist: _Distances, k: int, radius: float | None = None):
     """One pass over the candidate blocks, in padded batches: the k nearest candidates of each query,
     the nearest query of each keypoint, and (with ``radius``) every candidate pair within it."""
@@ -198,16 +275,16 @@ def _scan(index: CandidateIndex, dist: _Distances, k: int, radius: float | None 
     col_i = np.full(n2, -1, dtype=np.intp)
     within = []
     # The blocks are small: BLAS threads only add overhead there (and stall badly on a busy machine).
-    with threadpool_limits(1, user_api="blas"):
+    with _one_blas_thread():
         for Q, T in index.batches():
             m = index.mask_batch(Q, T)  # (G, g, w)
             s = dist.scores_batch(Q, T)
-            np.copyto(s, np.inf, where=~m)
             q_ok = Q >= 0
-            counts[Q[q_ok]] = m.sum(2)[q_ok]
+            counts[Q[q_ok]] = np.count_nonzero(m, axis=2)[q_ok]
             if radius is not None:
                 b, r, c = np.nonzero(m & (s <= radius))
                 within.append((Q[b, r], T[b, c], s[b, r, c]))
+            np.copyto(s, np.inf, where=np.logical_not(m, out=m))
             _column_best(s, Q, T, col_s, col_i)
             _top_k(s, Q, T, k, idx, sc)
     return GuidedResult(idx, sc, counts, col_i), within
@@ -366,8 +443,7 @@ class GuidedMatches:
 
     def keep(self, ratio: float = DEFAULT_RATIO, mutual: bool = True) -> np.ndarray:
         """(K,) bool: which pairs the rule keeps. ``ratio = 1`` disables the ratio test."""
-        keep = (self.ratio < ratio) if ratio < 1 else np.ones(len(self.pairs), dtype=bool)
-        return keep & self.mutual if mutual else keep
+        return _keep(self.ratio, self.mutual, ratio, mutual)
 
     def accept(self, ratio: float = DEFAULT_RATIO, mutual: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """The matches kept by the rule: ``(pairs, distances)``."""
@@ -384,6 +460,27 @@ def guided_matches(descriptors1, descriptors2, points1, points2, geometry, *, no
     (:meth:`GuidedMatches.accept`), which is how ``benchmarks/compare.py``
     sweeps precision-recall curves. Parameters as in :func:`match_descriptors`.
     """
+    i, j, ratio, mutual, counts, dist = _guided(descriptors1, descriptors2, points1, points2, geometry, norm=norm,
+                                                tol=tol, depth_range=depth_range, constraint=constraint, pad=pad,
+                                                cross_check=cross_check, rng=rng, group_size=group_size,
+                                                bucket_size=bucket_size)
+    return GuidedMatches(np.column_stack([i, j]).astype(np.intp), dist.exact(i, j), ratio, mutual, counts)
+
+
+def _keep(ratio_values, mutual_values, ratio, mutual):
+    keep = (ratio_values < ratio) if ratio < 1 else np.ones(len(ratio_values), dtype=bool)
+    return keep & mutual_values if mutual else keep
+
+
+def _guided(descriptors1, descriptors2, points1, points2, geometry, *, norm, tol, depth_range, constraint, pad,
+            cross_check, rng, group_size, bucket_size, rule=None):
+    """:func:`guided_matches` without the exact distances: ``(i, j, ratio, mutual, counts, distances)``, the
+    last the :class:`_Distances` to compute them with (only for the pairs kept, in :func:`match_descriptors`).
+
+    With ``rule = (ratio, mutual)``, the padding references are scored only for the pairs that pass the
+    rule without them (padding can only lower ``d2``, so it can only remove pairs): the others keep
+    their ratio to the second candidate, which the rule rejects anyway.
+    """
     d1, d2, p1, p2, norm, constraint, tol = _prepare(descriptors1, descriptors2, points1, points2,
                                                     geometry, norm, tol, constraint)
     if isinstance(pad, (bool, np.bool_)) or not isinstance(pad, (int, np.integer)) or pad < 0:
@@ -397,13 +494,6 @@ def guided_matches(descriptors1, descriptors2, points1, points2, geometry, *, no
     i = np.flatnonzero(res.indices[:, 0] >= 0)
     j = res.indices[i, 0]
     s1, s2 = res.scores[i, 0], res.scores[i, 1]
-    n_pad = min(int(pad), len(p2))
-    if n_pad and len(i):
-        pad_j = np.sort(np.random.default_rng(rng).choice(len(p2), n_pad, replace=False))
-        ps = dist.scores(i, pad_j)
-        ps[pad_j[None, :] == j[:, None]] = np.inf
-        s2 = np.minimum(s2, ps.min(axis=1))
-    ratio = _ratio(dist.to_distance(s1.astype(np.float64)), dist.to_distance(s2.astype(np.float64)))
     if cross_check:
         # bounds on z1 are not bounds on z2: the reverse pass uses the whole half-line (0, inf)
         back = CandidateIndex(geometry.inverse(), p2, p1, tol=tol, constraint=constraint, group_size=group_size,
@@ -412,7 +502,16 @@ def guided_matches(descriptors1, descriptors2, points1, points2, geometry, *, no
         mutual = rev.indices[j, 0] == i
     else:
         mutual = res.column_best[j] == i
-    return GuidedMatches(np.column_stack([i, j]).astype(np.intp), dist.exact(i, j), ratio, mutual, res.counts)
+    n_pad = min(int(pad), len(p2))
+    if n_pad and len(i):
+        pad_j = np.sort(np.random.default_rng(rng).choice(len(p2), n_pad, replace=False))
+        r = np.arange(len(i)) if rule is None else \
+            np.flatnonzero(_keep(_ratio(dist.to_distance(s1.astype(np.float64)),
+                                        dist.to_distance(s2.astype(np.float64))), mutual, *rule))
+        s2 = s2.copy()
+        s2[r] = np.minimum(s2[r], dist.nearest_excluding(i[r], pad_j, j[r]))
+    ratio = _ratio(dist.to_distance(s1.astype(np.float64)), dist.to_distance(s2.astype(np.float64)))
+    return i, j, ratio, mutual, res.counts, dist
 
 
 def _ratio(d1: np.ndarray, d2: np.ndarray) -> np.ndarray:
@@ -467,10 +566,13 @@ def match_descriptors(descriptors1, descriptors2, points1, points2, geometry, *,
     ([[0, 0]], [0.0])
     """
     ratio = check_ratio(ratio, "ratio")
-    gm = guided_matches(descriptors1, descriptors2, points1, points2, geometry, norm=norm, tol=tol,
-                        depth_range=depth_range, constraint=constraint, pad=pad, cross_check=cross_check, rng=rng,
-                        group_size=group_size, bucket_size=bucket_size)
-    return gm.accept(ratio, mutual or cross_check)
+    i, j, r, mu, _, dist = _guided(descriptors1, descriptors2, points1, points2, geometry, norm=norm, tol=tol,
+                                   depth_range=depth_range, constraint=constraint, pad=pad, cross_check=cross_check,
+                                   rng=rng, group_size=group_size, bucket_size=bucket_size,
+                                   rule=(ratio, mutual or cross_check))
+    keep = _keep(r, mu, ratio, mutual or cross_check)
+    i, j = i[keep], j[keep]
+    return np.column_stack([i, j]).astype(np.intp), dist.exact(i, j)
 
 
 def check_ratio(value, name: str) -> float:
@@ -511,13 +613,23 @@ def filter_pairs(pairs, points1, points2, geometry, *, tol=2.0, depth_range=(0.0
     if constraint == "none":
         return np.ones(len(pairs), dtype=bool)
     seg = geometry.segments(p1, depth_range, margin=tol)
-    i, y = pairs[:, 0], p2[pairs[:, 1]]
+    i, j = pairs[:, 0], pairs[:, 1]
+    # 1-D gathers (one column at a time) are several times faster than gathering rows of (N, 2) arrays
+    y0, y1 = np.ascontiguousarray(p2[:, 0])[j], np.ascontiguousarray(p2[:, 1])[j]
+    l0, l1, l2 = (np.ascontiguousarray(seg.line[:, c])[i] for c in range(3))
+    with np.errstate(invalid="ignore"):
+        line_distance = np.abs(l0 * y0 + l1 * y1 + l2)
     if constraint == "line":
-        line = seg.line[i]
-        with np.errstate(invalid="ignore"):
-            return np.abs(line[:, 0] * y[:, 0] + line[:, 1] * y[:, 1] + line[:, 2]) <= tol  # NaN line: False
-    d = _point_segment_distance(y, np.nan_to_num(seg.start)[i], np.nan_to_num(seg.end)[i])
-    return seg.valid[i] & (d <= tol)
+        return line_distance <= tol  # NaN line: False
+    # A segment lies on its line, so only pairs near the line need the distance to the segment; the
+    # margin covers rounding, and a NaN line (undefined: the query maps to the epipole) is kept.
+    near = np.flatnonzero(~(line_distance > tol * (1 + 1e-6) + 1e-6) & seg.valid[i])
+    keep = np.zeros(len(pairs), dtype=bool)
+    if near.size:
+        ii = i[near]
+        d = _point_segment_distance(p2[j[near]], np.nan_to_num(seg.start[ii]), np.nan_to_num(seg.end[ii]))
+        keep[near] = d <= tol
+    return keep
 
 
 def _check_pairs(pairs, points1, points2):
@@ -528,8 +640,8 @@ def _check_pairs(pairs, points1, points2):
     if arr.ndim != 2 or arr.shape[1] != 2 or not (np.issubdtype(arr.dtype, np.integer)):
         raise ValueError(f"pairs must be a (K, 2) integer array, got shape {arr.shape} and dtype {arr.dtype}")
     for col, n, name in ((0, len(p1), "points1"), (1, len(p2), "points2")):
-        bad = (arr[:, col] < 0) | (arr[:, col] >= n)
-        if bad.any():
+        if len(arr) and (arr[:, col].min() < 0 or arr[:, col].max() >= n):  # then find the first offender
+            bad = (arr[:, col] < 0) | (arr[:, col] >= n)
             raise ValueError(f"match index {int(arr[bad, col][0])} out of range for {name} with {n} keypoints")
     return arr.astype(np.intp), p1, p2
 
