@@ -236,8 +236,21 @@ def auto_depth_ranges(views, reconstruction, **kwargs) -> list[View]:
 # --------------------------------------------------------------------------------------
 # Running jobs: in-process, local processes, or a Dask cluster
 # --------------------------------------------------------------------------------------
+_WORKER_LIMITED = False
+
+
 def _single_thread():
-    cv2.setNumThreads(1)
+    """One thread per worker process, for OpenCV and for BLAS (idle BLAS threads spin and steal the core).
+
+    Without it, two workers on two cores ran slower than one process.
+    """
+    global _WORKER_LIMITED
+    if not _WORKER_LIMITED:
+        from threadpoolctl import threadpool_limits
+
+        cv2.setNumThreads(1)
+        threadpool_limits(1)
+        _WORKER_LIMITED = True
 
 
 def _run_in_worker(fn, item):
