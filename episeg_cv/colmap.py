@@ -41,10 +41,13 @@ the pairs already there. Only the driver process writes.
 from __future__ import annotations
 
 import concurrent.futures as cf
+import contextlib
 import json
 import multiprocessing
 import os
+import signal
 import sys
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -397,8 +400,16 @@ def _check_resumable(path: Path, views, counts, pair_list) -> set:
             if db.num_keypoints_for_image(v.image_id) != n:
                 raise ValueError(f"database {str(path)!r} holds other keypoints for {v.name!r} "
                                  "(other detector settings?); use --overwrite")
-        # matches and two-view geometry are written in one transaction: either both or neither
-        return {(i, j) for i, j in pair_list if db.exists_two_view_geometry(views[i].image_id, views[j].image_id)}
+        # matches and two-view geometry are written in one transaction; a pair with matches but
+        # no geometry can only come from an exception inside it (pycolmap commits on exit): redo it
+        done = set()
+        for i, j in pair_list:
+            a, b = views[i].image_id, views[j].image_id
+            if db.exists_two_view_geometry(a, b):
+                done.add((i, j))
+            elif db.exists_matches(a, b):
+                db.delete_matches(a, b)
+        return done
     finally:
         db.close()
 
@@ -414,9 +425,25 @@ def _write_pair(db, v1: View, v2: View, matches: np.ndarray, inliers: np.ndarray
     tvg.F = g.fundamental_matrix
     tvg.cam2_from_cam1 = pycolmap.Rigid3d(pycolmap.Rotation3d(g.R), g.t)
     tvg.inlier_matches = np.ascontiguousarray(inliers, dtype=np.uint32)
-    with pycolmap.DatabaseTransaction(db):
+    with _interrupts_deferred(), pycolmap.DatabaseTransaction(db):
         db.write_matches(v1.image_id, v2.image_id, np.ascontiguousarray(matches, dtype=np.uint32))
         db.write_two_view_geometry(v1.image_id, v2.image_id, tvg)
+
+
+@contextlib.contextmanager
+def _interrupts_deferred():
+    """Hold Ctrl-C (SIGINT) until the block ends: pycolmap's transaction commits even on an exception."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        if caught:
+            raise KeyboardInterrupt
 
 
 def read_database_matches(database) -> dict:

@@ -166,6 +166,30 @@ def test_interrupted_run_leaves_a_usable_database(folder, reference, tmp_path):
     _same(colmap.read_database_matches(db), reference[2])
 
 
+def test_resume_redoes_a_pair_with_matches_but_no_geometry(folder, reference, tmp_path):
+    """What an exception inside pycolmap's transaction (which commits on exit) would leave behind."""
+    db_path = tmp_path / "orphan.db"
+    colmap.match_model(folder["model"], folder["images"], db_path, pairs=[("view_000.png", "view_001.png")])
+    db = pycolmap.Database.open(str(db_path))
+    db.write_matches(1, 3, np.array([[0, 0], [1, 1]], dtype=np.uint32))  # no two-view geometry
+    db.close()
+    rest = colmap.match_model(folder["model"], folder["images"], db_path, resume=True)
+    assert rest.n_skipped == 1 and rest.n_pairs_done == 5
+    _same(colmap.read_database_matches(db_path), reference[2])
+
+
+def test_ctrl_c_inside_a_pair_write_is_held_until_the_pair_is_written():
+    import os
+    import signal
+
+    with pytest.raises(KeyboardInterrupt):
+        with colmap._interrupts_deferred():
+            os.kill(os.getpid(), signal.SIGINT)
+            written = True  # still runs: the interrupt waits for the end of the block
+    assert written
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
 def test_two_workers_give_identical_matches(folder, reference, tmp_path):
     report = colmap.match_model(folder["model"], folder["images"], tmp_path / "w2.db", workers=2,
                                 cache_dir=tmp_path / "cache")
