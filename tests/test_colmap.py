@@ -125,6 +125,21 @@ def test_poses_json_gives_the_same_matches_as_the_model(folder, reference, tmp_p
     assert rec.num_points3D() > 100
 
 
+def test_text_model_reads_like_the_binary_one(folder, tmp_path):
+    rec = pycolmap.Reconstruction(str(folder["model"]))
+    (tmp_path / "text").mkdir()
+    rec.write_text(str(tmp_path / "text"))
+    assert (tmp_path / "text" / "images.txt").is_file()
+    a, rec_a = colmap.load_model(folder["model"])
+    b, rec_b = colmap.load_model(tmp_path / "text")
+    assert [v.name for v in a] == [v.name for v in b]
+    for va, vb in zip(a, b):
+        np.testing.assert_allclose(va.R, vb.R, atol=1e-12)
+        np.testing.assert_allclose(va.K, vb.K)
+    assert [v.depth_range for v in colmap.auto_depth_ranges(a, rec_a)] == \
+        [v.depth_range for v in colmap.auto_depth_ranges(b, rec_b)]
+
+
 def test_line_constraint_keeps_at_least_the_segment_matches_count(folder, tmp_path):
     seg = colmap.match_model(folder["model"], folder["images"], tmp_path / "s.db", depth_range="none")
     line = colmap.match_model(folder["model"], folder["images"], tmp_path / "l.db", constraint="line",
