@@ -28,6 +28,17 @@ def _git_commit() -> str | None:
         return None
 
 
+def package_dirty() -> bool | None:
+    """Whether episeg_cv/ differs from the commit in ``git_commit`` (the package is installed editable)."""
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    try:
+        out = subprocess.run(["git", "status", "--porcelain", "--", "episeg_cv"], capture_output=True, text=True,
+                             cwd=root, timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return bool(out.stdout.strip()) if out.returncode == 0 else None
+
+
 def machine_metadata() -> dict:
     """CPU, core count, thread settings, OS, python/numpy/cv2/episeg_cv versions, git commit and UTC date."""
     import cv2

@@ -27,7 +27,6 @@ Writes ``benchmarks/results/colmap.{md,json}`` (``colmap_quick.*`` with ``--quic
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import os
 import resource
@@ -43,7 +42,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import machine_metadata  # noqa: E402
+from _common import machine_metadata, package_dirty  # noqa: E402
 
 SCRIPT = "benchmarks/colmap.py"
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -446,16 +445,6 @@ def _median(xs):
     return statistics.median(xs) if xs else float("nan")
 
 
-def _package_dirty():
-    root = Path(__file__).resolve().parent.parent
-    try:
-        out = subprocess.run(["git", "status", "--porcelain", "--", "episeg_cv"], capture_output=True, text=True,
-                             cwd=root, timeout=10)
-    except (OSError, subprocess.SubprocessError):
-        return None
-    return bool(out.stdout.strip()) if out.returncode == 0 else None
-
-
 def run(cfg: dict, work: Path) -> dict:
     from episeg_cv import colmap, scenes
 
@@ -832,7 +821,7 @@ def main(argv=None) -> int:
     command = " ".join(["python", SCRIPT] + [shlex.quote(a) for a in argv])
     load0 = os.getloadavg()[0]
     meta = machine_metadata()  # at the start: the commit of the code that runs
-    meta["episeg_cv_uncommitted_changes"] = _package_dirty()
+    meta["episeg_cv_uncommitted_changes"] = package_dirty()
     t0 = time.perf_counter()
     progress(f"{command}: {cfg}")
     if args.keep:
@@ -847,7 +836,7 @@ def main(argv=None) -> int:
             shutil.rmtree(work, ignore_errors=True)
     from episeg_cv.matching import DEFAULT_RATIO
 
-    end = {"git_commit": machine_metadata()["git_commit"], "episeg_cv_uncommitted_changes": _package_dirty()}
+    end = {"git_commit": machine_metadata()["git_commit"], "episeg_cv_uncommitted_changes": package_dirty()}
     if (end["git_commit"], end["episeg_cv_uncommitted_changes"]) != (meta["git_commit"],
                                                                    meta["episeg_cv_uncommitted_changes"]) \
             or end["episeg_cv_uncommitted_changes"]:

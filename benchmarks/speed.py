@@ -28,7 +28,6 @@ import gc
 import json
 import os
 import shlex
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -38,7 +37,7 @@ import numpy as np
 from threadpoolctl import threadpool_info
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import machine_metadata  # noqa: E402
+from _common import machine_metadata, package_dirty  # noqa: E402
 
 from episeg_cv import CandidateIndex, SegmentMatcher, filter_pairs, match_descriptors  # noqa: E402
 from episeg_cv import scenes  # noqa: E402
@@ -395,17 +394,6 @@ def write_markdown(path: Path, res: dict) -> None:
     path.write_text("\n".join(L))
 
 
-def _package_dirty():
-    """Whether episeg_cv/ differs from the commit in ``git_commit`` (the package is installed editable)."""
-    root = Path(__file__).resolve().parent.parent
-    try:
-        out = subprocess.run(["git", "status", "--porcelain", "--", "episeg_cv"], capture_output=True, text=True,
-                             cwd=root, timeout=10)
-    except (OSError, subprocess.SubprocessError):
-        return None
-    return bool(out.stdout.strip()) if out.returncode == 0 else None
-
-
 def _image_size(text: str):
     try:
         w, h = (int(v) for v in text.lower().split("x"))
@@ -447,7 +435,7 @@ def main(argv=None) -> int:
     command = " ".join(["python", SCRIPT] + [shlex.quote(a) for a in argv])
     load0 = os.getloadavg()[0]
     meta = machine_metadata()  # at the start: the commit of the code that runs
-    meta["episeg_cv_uncommitted_changes"] = _package_dirty()
+    meta["episeg_cv_uncommitted_changes"] = package_dirty()
     t_start = time.perf_counter()
     progress(f"{command}: poses {', '.join(poses)}; sizes {', '.join(map(str, sizes))}; repeats {args.repeats}")
     results = {name: run_pose(name, sizes, args.repeats, args.image_size) for name in poses}

@@ -205,7 +205,7 @@ class CandidateIndex:
         return np.mod(np.arctan2(b, a), np.pi), (l0, l1)
 
     def _build(self, group_size: int, bucket_size: int) -> "_Groups":
-        n1, n2 = len(self.points1), len(self.points2)
+        n2 = len(self.points2)
         q_ok = np.flatnonzero(self._ok)
         if n2 == 0 or q_ok.size == 0:
             return _Groups.empty()

@@ -544,8 +544,6 @@ def _shade(scene: Scene, K, R, t, xs, ys, iz, qid, ub, vb) -> np.ndarray:
     starts = np.searchsorted(sorted_ids, np.arange(len(scene.quads) + 1))
     Kinv = np.linalg.inv(K)
     step = float(xs[1] - xs[0]) if len(xs) > 1 else 1.0
-    X = np.broadcast_to(xs[None, :], qid.shape).reshape(-1)
-    Y = np.broadcast_to(ys[:, None], qid.shape).reshape(-1)
     izf, uf, vf = iz.reshape(-1), ub.reshape(-1), vb.reshape(-1)
     of = out.reshape(-1)
     for k, q in enumerate(scene.quads):
