@@ -432,8 +432,13 @@ def _write_pair(db, v1: View, v2: View, matches: np.ndarray, inliers: np.ndarray
 
 @contextlib.contextmanager
 def _interrupts_deferred():
-    """Hold Ctrl-C (SIGINT) until the block ends: pycolmap's transaction commits even on an exception."""
-    if threading.current_thread() is not threading.main_thread():
+    """Hold SIGINT (Ctrl-C) until the block ends, then deliver it to the previous handler.
+
+    pycolmap's transaction commits even when an exception leaves it, so a
+    KeyboardInterrupt between two writes would commit half a pair.
+    """
+    if threading.current_thread() is not threading.main_thread() \
+            or signal.getsignal(signal.SIGINT) in (signal.SIG_IGN, None):
         yield
         return
     caught = []
@@ -443,7 +448,7 @@ def _interrupts_deferred():
     finally:
         signal.signal(signal.SIGINT, previous)
         if caught:
-            raise KeyboardInterrupt
+            signal.raise_signal(signal.SIGINT)
 
 
 def read_database_matches(database) -> dict:

@@ -197,12 +197,20 @@ def test_ctrl_c_inside_a_pair_write_is_held_until_the_pair_is_written():
     import os
     import signal
 
-    with pytest.raises(KeyboardInterrupt):
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)  # as in an interactive run
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            with colmap._interrupts_deferred():
+                os.kill(os.getpid(), signal.SIGINT)
+                written = True  # still runs: the interrupt waits for the end of the block
+        assert written
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # as under nohup: stays ignored
         with colmap._interrupts_deferred():
             os.kill(os.getpid(), signal.SIGINT)
-            written = True  # still runs: the interrupt waits for the end of the block
-    assert written
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGINT, before)
 
 
 def test_two_workers_give_identical_matches(folder, reference, tmp_path):
