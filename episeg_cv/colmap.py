@@ -262,7 +262,10 @@ def _run_in_worker(fn, item):
 
 
 class _Runner:
-    """Run ``fn`` over items with at most ``window`` in flight; yields results as they finish."""
+    """Run ``fn`` over items with at most ``window`` in flight; yields results as they finish.
+
+    ``chunk`` is the number of pairs the caller should put in one task for this runner.
+    """
 
     def __init__(self, workers: int = 1, scheduler: str | None = None):
         self._pool = self._client = self._cluster = None
@@ -284,14 +287,16 @@ class _Runner:
                     raise ConnectionError(f"cannot reach the Dask scheduler at {scheduler!r}: {e}") from e
                 self.describe = f"the Dask cluster at {scheduler}"
             self.window = 4 * max(1, len(self._client.scheduler_info().get("workers", {})) or 1)
+            self.chunk = 8
         elif workers > 1:
             self._pool = cf.ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
                                                 initializer=_single_thread)
             self.describe = f"{workers} local processes"
             self.window = 4 * workers
+            self.chunk = 4
         else:
             self.describe = "this process"
-            self.window = 1
+            self.window = self.chunk = 1
 
     def imap(self, fn, items):
         items = iter(items)
@@ -700,13 +705,15 @@ def match_model(model, image_dir, database, *, pairs=None, neighbors=None, detec
         todo = [p for p in pair_list if p not in done]
         report.n_skipped = len(pair_list) - len(todo)
 
-        jobs = (PairJob(k, views[i], views[j], store, constraint, tol, ratio) for k, (i, j) in enumerate(todo))
+        jobs = [PairJob(k, views[i], views[j], store, constraint, tol, ratio) for k, (i, j) in enumerate(todo)]
+        # a few consecutive pairs per task: less scheduling and pickling, and they share images
+        chunks = (jobs[k:k + runner.chunk] for k in range(0, len(jobs), runner.chunk))
         pycolmap = _pycolmap()
         t0 = time.perf_counter()
         lengths, samples = np.zeros(3), 0
         db = pycolmap.Database.open(str(path))
         try:
-            for res in runner.imap(match_pair, jobs):
+            for res in (r for chunk in runner.imap(_match_chunk, chunks) for r in chunk):
                 i, j = todo[res.index]
                 _write_pair(db, views[i], views[j], res.matches, res.inliers)
                 report.n_matches += len(res.matches)
@@ -724,6 +731,10 @@ def match_model(model, image_dir, database, *, pairs=None, neighbors=None, detec
     finally:
         runner.close()
     return report
+
+
+def _match_chunk(jobs):
+    return [match_pair(job) for job in jobs]
 
 
 def _ensure_features(item):
