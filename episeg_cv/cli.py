@@ -576,7 +576,12 @@ def cmd_bench(args, console: _Console) -> int:
 # Parser and entry point
 # --------------------------------------------------------------------------------------
 class _Formatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
-    pass
+    """Shows each option's default, except None, the False of on/off flags, and defaults the help states."""
+
+    def _get_help_string(self, action):
+        if action.default is None or action.default is False or "default:" in (action.help or ""):
+            return action.help
+        return super()._get_help_string(action)
 
 
 def _positive_int(text):
@@ -618,6 +623,7 @@ def _ratio(text):
 
 def build_parser() -> argparse.ArgumentParser:
     from . import __version__
+    from .matching import DEFAULT_RATIO
 
     common = argparse.ArgumentParser(add_help=False)
     g = common.add_mutually_exclusive_group()
@@ -669,7 +675,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--depth-range", type=_depth, nargs=2, metavar=("ZMIN", "ZMAX"), default=None,
                    help="depth bounds in camera 1, in the unit of t (ZMAX may be inf); default 0 inf")
     p.add_argument("--ratio", type=_ratio, default=None,
-                   help="ratio test threshold (default: the matcher's, 0.8)")
+                   help=f"ratio test threshold (default: the matcher's, {DEFAULT_RATIO})")
     p.add_argument("--cross-check", action="store_true", help="keep only mutual nearest neighbours both ways")
     p.add_argument("--max-features", type=_positive_int, default=4000, metavar="N", help="keypoints per image")
     p.add_argument("--out", default=None, metavar="FILE", help="matches file: .json, .npz or .csv")
@@ -727,20 +733,22 @@ def build_parser() -> argparse.ArgumentParser:
     pg = p.add_mutually_exclusive_group()
     pg.add_argument("--pairs", metavar="FILE", help="pairs file, one 'name1 name2' per line (COLMAP/hloc)")
     pg.add_argument("--neighbors", type=_positive_int, metavar="K",
-                    help="each image's K best partners by view overlap (default: every pair)")
+                    help="each image's K best partners by view overlap (default, without --pairs: every pair)")
     p.add_argument("--detector", choices=("sift", "orb", "akaze"), default="sift", help="keypoint detector")
     p.add_argument("--max-features", type=_positive_int, default=8192, metavar="N", help="keypoints per image")
     p.add_argument("--constraint", choices=("segment", "line"), default="segment",
                    help="search the correct segment or the whole epipolar line")
-    p.add_argument("--depth-range", nargs="+", default=["auto"], metavar="auto|none|ZMIN ZMAX",
-                   help="per-image depth ranges from the model's 3D points (auto), none, or fixed bounds")
+    p.add_argument("--depth-range", nargs="+", default=["auto"], metavar="SPEC",
+                   help="'auto': each image's depth range from the model's 3D points it sees; 'none': (0, inf); "
+                        "or 'ZMIN ZMAX' for every image, in the unit of the poses (default: auto)")
     p.add_argument("--tol", type=_nonneg_float, default=2.0, metavar="PX", help="pixel tolerance of the constraint")
     p.add_argument("--ratio", type=_ratio, default=None,
-                   help="ratio test of the guided matcher, with its mutual check (default: the matcher's)")
+                   help=f"ratio test of the guided matcher, with its mutual check (default: the matcher's, {DEFAULT_RATIO})")
     p.add_argument("--workers", type=_positive_int, default=1, metavar="N", help="local worker processes")
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="Dask scheduler address, or local:N for a new LocalCluster (needs episeg_cv[dask])")
-    p.add_argument("--cache", default=None, metavar="DIR", help="feature cache folder (default: DB.features)")
+    p.add_argument("--cache", default=None, metavar="DIR",
+                   help="feature cache folder (default: DB.features, next to the database)")
     p.add_argument("--triangulate", default=None, metavar="OUT_DIR",
                    help="then run pycolmap.triangulate_points and write the model to OUT_DIR")
     rg = p.add_mutually_exclusive_group()
