@@ -26,6 +26,7 @@ import functools
 import hashlib
 import os
 import re
+import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -84,6 +85,18 @@ class View:
         COLMAP camera parameters, in COLMAP's pixel convention.
     depth_range : (float, float)
         ``(zmin, zmax)`` of the scene in this camera, used for its segments.
+
+    Examples
+    --------
+    >>> K = [[100, 0, 49.5], [0, 100, 49.5], [0, 0, 1]]
+    >>> a = View("a.png", 1, 1, K, np.eye(3), [0, 0, 0], (100, 100), depth_range=(1, 10))
+    >>> b = View("b.png", 2, 1, K, np.eye(3), [-1, 0, 0], (100, 100))   # 1 m to the right of a
+    >>> a.camera_params, b.center.tolist()
+    ((100.0, 100.0, 50.0, 50.0), [1.0, 0.0, 0.0])
+    >>> g = a.geometry_to(b)
+    >>> seg = g.segments([[49.5, 49.5]], a.depth_range)
+    >>> np.round(seg.start, 1).tolist(), np.round(seg.end, 1).tolist()   # x2 = 49.5 - 100 / z, z in [1, 10]
+    ([[-0.5, 49.5]], [[39.5, 49.5]])
     """
 
     name: str
@@ -104,14 +117,12 @@ class View:
         object.__setattr__(self, "image_size", as_image_size(self.image_size, f"image_size of image {self.name!r}"))
         object.__setattr__(self, "depth_range", tuple(float(v) for v in as_depth_range(
             self.depth_range, None, f"depth_range of image {self.name!r}")))
-        if not self.camera_params:
-            K = self.K
-            object.__setattr__(self, "camera_params", (K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5))
+        params = self.camera_params or (self.K[0, 0], self.K[1, 1], self.K[0, 2] + 0.5, self.K[1, 2] + 0.5)
+        object.__setattr__(self, "camera_params", tuple(float(p) for p in params))
 
     def with_depth_range(self, depth_range) -> "View":
         """A copy with another ``depth_range``."""
-        return View(self.name, self.image_id, self.camera_id, self.K, self.R, self.t, self.image_size,
-                    self.camera_model, self.camera_params, depth_range)
+        return dataclasses.replace(self, depth_range=depth_range)
 
     def geometry_to(self, other: "View") -> TwoViewGeometry:
         """The :class:`TwoViewGeometry` from this view to ``other`` (pinhole images)."""
