@@ -655,6 +655,7 @@ def match_model(model, image_dir, database, *, pairs=None, neighbors=None, detec
     ConnectionError
         The Dask scheduler cannot be reached.
     """
+    pycolmap = _pycolmap()  # fail before any work when it is missing
     warn = log or (lambda msg: print(msg, file=sys.stderr))
     constraint = check_constraint(constraint)
     if constraint == "none":
@@ -697,9 +698,7 @@ def match_model(model, image_dir, database, *, pairs=None, neighbors=None, detec
 
         if resume:
             done = _check_resumable(path, views, counts, pair_list)
-        else:
-            if path.exists():  # overwrite (checked above)
-                path.unlink()
+        else:  # a new database, or (overwrite) one replaced atomically by the new one
             _create_database(path, rec, views, store)
             done = set()
         todo = [p for p in pair_list if p not in done]
@@ -708,7 +707,6 @@ def match_model(model, image_dir, database, *, pairs=None, neighbors=None, detec
         jobs = [PairJob(k, views[i], views[j], store, constraint, tol, ratio) for k, (i, j) in enumerate(todo)]
         # a few consecutive pairs per task: less scheduling and pickling, and they share images
         chunks = (jobs[k:k + runner.chunk] for k in range(0, len(jobs), runner.chunk))
-        pycolmap = _pycolmap()
         t0 = time.perf_counter()
         lengths, samples = np.zeros(3), 0
         db = pycolmap.Database.open(str(path))
@@ -720,8 +718,8 @@ def match_model(model, image_dir, database, *, pairs=None, neighbors=None, detec
                 report.n_inliers += len(res.inliers)
                 lengths += res.lengths
                 samples += res.samples
-                done_now = report.n_pairs_done = report.n_pairs_done + 1
-                tick("pairs", done_now, len(todo))
+                report.n_pairs_done += 1
+                tick("pairs", report.n_pairs_done, len(todo))
         finally:
             db.close()
         report.seconds_matching = time.perf_counter() - t0
