@@ -135,17 +135,10 @@ def _size(img) -> tuple[int, int]:
 
 
 def make_detector(name: str, max_features: int):
-    """``(detector, norm)`` for ``sift``, ``orb`` or ``akaze`` (OpenCV 4 or 5)."""
-    if name == "sift":
-        return cv2.SIFT_create(nfeatures=max_features), cv2.NORM_L2
-    if name == "orb":
-        return cv2.ORB_create(nfeatures=max_features), cv2.NORM_HAMMING
-    if name == "akaze":
-        create = getattr(cv2, "AKAZE_create", None) or getattr(getattr(cv2, "xfeatures2d", None), "AKAZE_create", None)
-        if create is None:
-            raise UserError("AKAZE is not available in this OpenCV build")
-        return create(), cv2.NORM_HAMMING
-    raise ValueError(f"detector must be sift, orb or akaze, got {name!r}")
+    """``(detector, norm)`` for ``sift``, ``orb`` or ``akaze`` (OpenCV 4 or 5), with OpenCV's default settings."""
+    from .collection import create_detector
+
+    return create_detector(name, max_features, sift_contrast=None), cv2.NORM_L2 if name == "sift" else cv2.NORM_HAMMING
 
 
 def detect(detector, image, max_features: int):

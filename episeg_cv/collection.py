@@ -46,7 +46,9 @@ __all__ = [
     "overlap_scores",
     "neighbor_pairs",
     "depth_range_from_depths",
+    "create_detector",
     "detect_features",
+    "is_bounded",
     "FeatureStore",
     "PairJob",
     "match_pair",
@@ -303,14 +305,28 @@ def depth_range_from_depths(depths, percentiles=(2.0, 98.0), margin: float = 0.2
 SIFT_CONTRAST = 0.02
 
 
-def _detector(name: str, max_features: int):
+def create_detector(name: str, max_features: int, sift_contrast: float | None = SIFT_CONTRAST):
+    """An OpenCV detector: ``"sift"``, ``"orb"`` or ``"akaze"`` (in ``cv2`` or ``cv2.xfeatures2d``).
+
+    ``sift_contrast`` is SIFT's ``contrastThreshold`` (None: OpenCV's default, 0.04).
+    ``max_features`` caps SIFT and ORB; AKAZE has no cap.
+    """
     if name == "sift":
-        return cv2.SIFT_create(nfeatures=max_features, contrastThreshold=SIFT_CONTRAST)
+        extra = {} if sift_contrast is None else {"contrastThreshold": sift_contrast}
+        return cv2.SIFT_create(nfeatures=max_features, **extra)
     if name == "orb":
         return cv2.ORB_create(nfeatures=max_features)
     if name == "akaze":
-        return (cv2.AKAZE_create if hasattr(cv2, "AKAZE_create") else cv2.xfeatures2d.AKAZE_create)()
+        create = getattr(cv2, "AKAZE_create", None) or getattr(getattr(cv2, "xfeatures2d", None), "AKAZE_create", None)
+        if create is None:
+            raise ValueError("AKAZE is not available in this OpenCV build")
+        return create()
     raise ValueError(f"detector must be one of {tuple(DETECTORS)}, got {name!r}")
+
+
+def is_bounded(depth_range) -> bool:
+    """Whether ``(zmin, zmax)`` says more than ``(0, inf)``."""
+    return bool(depth_range[0] > 0 or np.isfinite(depth_range[1]))
 
 
 def detect_features(image: np.ndarray, detector: str = "sift", max_features: int = 8192):
@@ -326,7 +342,7 @@ def detect_features(image: np.ndarray, detector: str = "sift", max_features: int
         Pixel positions (centre of the top-left pixel at ``(0, 0)``).
     descriptors : (N, D) float32 (RootSIFT) or uint8 (ORB, AKAZE)
     """
-    kp, des = _detector(detector, max_features).detectAndCompute(image, None)
+    kp, des = create_detector(detector, max_features).detectAndCompute(image, None)
     if des is None or not kp:
         width = {"sift": 128, "orb": 32, "akaze": 61}[detector]
         return np.zeros((0, 2)), np.zeros((0, width), np.float32 if detector == "sift" else np.uint8)

@@ -56,7 +56,7 @@ import cv2
 import numpy as np
 
 from .collection import (DETECTORS, FeatureStore, PairJob, View, depth_range_from_depths, exhaustive_pairs,
-                         index_pairs, match_pair, neighbor_pairs, read_pairs)
+                         index_pairs, is_bounded, match_pair, neighbor_pairs, read_pairs)
 from .candidates import check_constraint
 from .matching import DEFAULT_RATIO, check_ratio
 from ._validation import as_nonnegative
@@ -196,8 +196,7 @@ def save_poses(path, views) -> None:
     """Write ``views`` as a poses JSON (:func:`load_poses` reads it back; distortion is not written)."""
     items = [{"name": v.name, "width": v.image_size[0], "height": v.image_size[1], "K": v.K.tolist(),
               "R": v.R.tolist(), "t": v.t.tolist(),
-              **({"depth_range": list(v.depth_range)} if np.isfinite(v.depth_range[1]) or v.depth_range[0] > 0
-                 else {})} for v in views]
+              **({"depth_range": list(v.depth_range)} if is_bounded(v.depth_range) else {})} for v in views]
     Path(path).write_text(json.dumps({"images": items}, indent=1), encoding="utf-8")
 
 
@@ -531,7 +530,7 @@ class MatchReport:
                  f"matches written: {self.n_matches}, inliers: {self.n_inliers}",
                  f"features: {self.seconds_features:.1f} s; matching: {self.seconds_matching:.1f} s, "
                  f"{self.pairs_per_second:.1f} pairs/s on {self.runner}"]
-        bounded = sum(bool(np.isfinite(z[1]) or z[0] > 0) for z in self.depth_ranges.values())
+        bounded = sum(is_bounded(z) for z in self.depth_ranges.values())
         lines.append(f"depth ranges: {bounded} of {self.n_images} images bounded")
         L = self.search_length
         if L and L["line"] > 0:
@@ -576,13 +575,12 @@ def _resolve_depth(views, rec, depth_range, warn):
         if depth_range != "auto":
             raise ValueError(f"depth_range must be 'auto', 'none', None or (zmin, zmax), got {depth_range!r}")
         if rec is None:
-            bounded = [v for v in views if np.isfinite(v.depth_range[1]) or v.depth_range[0] > 0]
-            if not bounded:
+            if not any(is_bounded(v.depth_range) for v in views):
                 warn("warning: depth_range 'auto' needs a COLMAP model with 3D points (or depth_range in the "
                      "poses JSON); using (0, inf)")
             return views
         out = auto_depth_ranges(views, rec)
-        unseen = [v.name for v in out if not np.isfinite(v.depth_range[1])]
+        unseen = [v.name for v in out if not is_bounded(v.depth_range)]
         if unseen:
             warn(f"warning: {len(unseen)} image(s) observe too few 3D points for a depth range, using (0, inf): "
                  + ", ".join(unseen[:5]) + (" ..." if len(unseen) > 5 else ""))
