@@ -9,19 +9,20 @@ index works in two stages:
    lines whose ``phi`` lies in a small interval (the lines through the
    epipole that touch the disk of radius ``tol`` around ``y``); it is put in
    every bucket that interval overlaps.
-2. **Blocks along the lines.** Inside a bucket, positions along the lines are
-   measured by ``rho``, the projection on the bucket's mean line direction.
-   Projection is 1-Lipschitz, so a point within ``tol`` of a segment has
-   ``rho`` within ``tol`` of the segment's ``rho`` interval. Queries are
-   grouped by their interval, and each group gets one contiguous slice of the
-   bucket's keypoints sorted by ``rho``.
+2. **Slices along the lines.** Inside a bucket, positions along the lines are
+   measured by ``rho``, the projection on the bucket's mean line direction,
+   and the bucket's keypoints are sorted by it. Projection is 1-Lipschitz, so
+   a point within ``tol`` of a segment has ``rho`` within ``tol`` of the
+   segment's ``rho`` interval: each query gets the contiguous slice of its
+   bucket's keypoints whose ``rho`` lies in its interval.
 
-Each block, ``(queries, keypoints)``, is small and dense, which suits BLAS for
-the descriptor distances. The exact geometric test, distance to the segment
-(or line) at most ``tol``, is then applied inside the block by :meth:`mask`.
+The exact geometric test, distance to the segment (or line) at most ``tol``,
+is then applied to each keypoint of the slice, in compiled code
+(:mod:`episeg_cv._kernels`), and only the keypoints that pass it are scored.
 The line and the segment use the same index; the segment's shorter ``rho``
-intervals give smaller blocks. The pencil angle is built from an orthonormal
-basis of the lines through the (unit) homogeneous epipole, so an epipole at
+intervals give shorter slices, so it does less work.
+
+The pencil angle is built from an orthonormal basis of the lines through the (unit) homogeneous epipole, so an epipole at
 infinity (``t_3 = 0``) or very far needs no special case. For pure rotation
 (``t = 0``) there is no pencil; every segment is a point and the index falls
 back to one bucket with ``rho`` along ``x``.
@@ -29,10 +30,9 @@ back to one bucket with ``rho`` along ``x``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
+from . import _kernels
 from ._validation import as_nonnegative, as_points
 from .geometry import EpipolarSegments, TwoViewGeometry
 
@@ -46,14 +46,6 @@ def check_constraint(constraint) -> str:
     if not isinstance(constraint, str) or constraint not in CONSTRAINTS:
         raise ValueError(f"constraint must be one of {CONSTRAINTS}, got {constraint!r}")
     return constraint
-
-
-@dataclass(frozen=True)
-class Block:
-    """A group of queries and the keypoints of image 2 they must be compared with."""
-
-    queries: np.ndarray  # (g,) intp indices into points1
-    train: np.ndarray  # (m,) intp indices into points2
 
 
 class CandidateIndex:
@@ -73,11 +65,11 @@ class CandidateIndex:
         Passed to :meth:`TwoViewGeometry.segments` (ignored by ``"line"``).
     constraint : {"segment", "line"}
         Which region the candidates must lie in.
-    group_size : int, optional
-        Queries per block. Larger blocks mean fewer Python steps but more
-        wasted pairs.
     bucket_size : int, optional
-        Queries per pencil bucket (each bucket is cut into blocks).
+        Queries per pencil bucket. Smaller buckets are narrower, so their
+        slices hold fewer keypoints off the lines, but a keypoint near many
+        lines is stored in more buckets. Speed only: the candidates do not
+        change.
 
     Examples
     --------
@@ -94,8 +86,7 @@ class CandidateIndex:
     """
 
     def __init__(self, geometry: TwoViewGeometry, points1, points2, *, tol: float = 2.0,
-                 depth_range=(0.0, np.inf), constraint: str = "segment", group_size: int = 32,
-                 bucket_size: int = 64):
+                 depth_range=(0.0, np.inf), constraint: str = "segment", bucket_size: int = 64):
         if not isinstance(geometry, TwoViewGeometry):
             raise TypeError(f"geometry must be a TwoViewGeometry, got {type(geometry).__name__}")
         constraint = check_constraint(constraint)
@@ -103,7 +94,7 @@ class CandidateIndex:
             raise ValueError("CandidateIndex needs constraint 'segment' or 'line'; 'none' has no index")
         self.geometry = geometry
         self.points1 = as_points(points1, "points1")
-        self.points2 = as_points(points2, "points2")
+        self.points2 = np.ascontiguousarray(as_points(points2, "points2"))
         self.tol = as_nonnegative(tol, "tol")
         self.constraint = constraint
         #: The segments of the queries, clipped to image 2 grown by ``tol``.
@@ -117,8 +108,7 @@ class CandidateIndex:
         self._P = np.where(self._ok[:, None], self._P, 0.0)
         self._Q = np.where(self._ok[:, None], self._Q, 0.0)
         self._line = np.where(np.isfinite(seg.line), seg.line, 0.0)
-        # a local frame per query: unit normal n and direction d of its segment (or line), so that a
-        # point y is at offset n.y - off_n across and s = d.y - off_d along, with 0 <= s <= length
+        # a local frame per query: unit normal n and direction d of its segment (or line)
         D = self._Q - self._P
         length = np.hypot(D[:, 0], D[:, 1])
         d = np.where(length[:, None] > 0, D / np.where(length > 0, length, 1.0)[:, None], [1.0, 0.0])
@@ -127,52 +117,30 @@ class CandidateIndex:
             n, off_n = self._line[:, :2], -self._line[:, 2]
         else:
             off_n = (n * self._P).sum(1)
-        # per query (one extra last row, selected by the padding index -1, that is never a candidate):
-        # across = n.y - off_n, and along = |d.y - mid| - half, with mid the segment's middle and half its
-        # half-length, so the distance to the segment is hypot(across, max(along, 0))
-        far = 1e12
-        self._n0, self._n1 = np.r_[n[:, 0], 0.0], np.r_[n[:, 1], 0.0]
-        self._off_n = np.r_[off_n, far]
-        self._d0, self._d1 = np.r_[d[:, 0], 0.0], np.r_[d[:, 1], 0.0]
-        self._half = np.r_[0.5 * length, 0.0]
-        self._mid = np.r_[(d * self._P).sum(1) + 0.5 * length, 0.0]
-        self._y0 = np.r_[self.points2[:, 0], far]
-        self._y1 = np.r_[self.points2[:, 1], far]
+        # the kernels' per-query parameters (see episeg_cv._kernels): across = n.y - off_n, and
+        # along = |d.y - mid| - half, so that the distance to the segment is hypot(across, max(along, 0))
+        self._geo = np.ascontiguousarray(np.column_stack(
+            [n, off_n, d, (d * self._P).sum(1) + 0.5 * length, 0.5 * length]), dtype=np.float64)
         self._tol2 = self.tol * self.tol * (1 + 1e-9) + 1e-12
-        self._groups = self._build(max(int(group_size), 1), max(int(bucket_size), 1))
+        #: Query ``q_sorted[r]`` is compared with the keypoints ``t_sorted[q_start[r]:q_stop[r]]``.
+        self.q_sorted, self.q_start, self.q_stop, self.t_sorted = self._build(max(int(bucket_size), 1))
+        self._y_sorted = self.points2[self.t_sorted]
 
-    @property
-    def blocks(self) -> list[Block]:
-        """The blocks, ``(queries, keypoints)`` to compare, as a list."""
-        gr = self._groups
-        return [Block(gr.q_sorted[a:b], gr.t_sorted[c:d])
-                for a, b, c, d in zip(gr.q_start, gr.q_stop, gr.t_start, gr.t_stop)]
-
-    # -- the exact test ------------------------------------------------------------
-    def mask(self, queries: np.ndarray, train: np.ndarray) -> np.ndarray:
-        """``(len(queries), len(train))`` bool: is ``points2[train[j]]`` a candidate of ``queries[i]``.
-
-        Segment: distance to the segment (a capsule) at most ``tol``. Line:
-        distance to the line at most ``tol``. Queries must have a valid
-        segment (those in :attr:`blocks` do).
-        """
-        return self.mask_batch(np.asarray(queries)[None], np.asarray(train)[None])[0]
+    def _run(self, kernel, *args):
+        """Call a kernel of :mod:`episeg_cv._kernels` on the slices and the exact test."""
+        return kernel(self.q_sorted, self.q_start, self.q_stop, self.t_sorted, self._geo, self._y_sorted,
+                      self.constraint == "line", self.tol, self._tol2, *args)
 
     def pairs(self) -> np.ndarray:
         """All candidate pairs ``(K, 2)`` of ``(query, train)`` indices, sorted by query then train."""
-        out = [np.zeros((0, 2), dtype=np.intp)]
-        for blk in self.blocks:
-            i, j = np.nonzero(self.mask(blk.queries, blk.train))
-            out.append(np.column_stack([blk.queries[i], blk.train[j]]))
-        pairs = np.concatenate(out)
-        return pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
+        i, j = self._run(_kernels.candidate_pairs)
+        o = np.lexsort((j, i))
+        return np.column_stack([i[o], j[o]]).astype(np.intp)
 
     def candidate_counts(self) -> np.ndarray:
         """(N1,) number of candidates of each query."""
-        counts = np.zeros(len(self.points1), dtype=np.intp)
-        for blk in self.blocks:
-            counts[blk.queries] = self.mask(blk.queries, blk.train).sum(1)
-        return counts
+        i, _ = self._run(_kernels.candidate_pairs)
+        return np.bincount(i, minlength=len(self.points1)).astype(np.intp)
 
     # -- building ------------------------------------------------------------------
     def _pencil(self):
@@ -204,11 +172,13 @@ class CandidateIndex:
         b = l0 * v[0] + l1 * v[1] + l2 * v[2]
         return np.mod(np.arctan2(b, a), np.pi), (l0, l1)
 
-    def _build(self, group_size: int, bucket_size: int) -> "_Groups":
+    def _build(self, bucket_size: int):
+        """``(q_sorted, q_start, q_stop, t_sorted)``: the slices of :attr:`t_sorted` to scan per query."""
         n2 = len(self.points2)
         q_ok = np.flatnonzero(self._ok)
         if n2 == 0 or q_ok.size == 0:
-            return _Groups.empty()
+            z = np.zeros(0, dtype=np.intp)
+            return z, z, z, z
         pencil = self._pencil()
         y = self.points2
         if pencil is None:  # pure rotation: every segment is a point; one bucket, rho along x
@@ -270,87 +240,10 @@ class CandidateIndex:
         q_lo, q_hi = np.minimum(r1, r2) - self.tol, np.maximum(r1, r2) + self.tol
         order_q = np.argsort(q_bucket + ((q_lo + q_hi) / (4 * span) + 0.5))  # by bucket, then by mid-interval
         q_sorted, qb, q_lo, q_hi = q_ok[order_q], q_bucket[order_q], q_lo[order_q], q_hi[order_q]
-        # groups: consecutive queries of one bucket, at most group_size long
-        pos = np.arange(len(qb))
-        bucket_start = np.maximum.accumulate(np.where(np.r_[True, qb[1:] != qb[:-1]], pos, 0))
-        first = np.flatnonzero((pos - bucket_start) % group_size == 0)
-        g_lo = np.minimum.reduceat(q_lo, first)
-        g_hi = np.maximum.reduceat(q_hi, first)
-        g_b = qb[first]
-        a = np.searchsorted(key_t, g_b + (g_lo / span + 0.5), side="left")
-        z = np.searchsorted(key_t, g_b + (g_hi / span + 0.5), side="right")
-        keep = z > a
-        bounds = np.r_[first, len(qb)]
-        return _Groups(q_sorted, bounds[:-1][keep], bounds[1:][keep], t_sorted, a[keep], z[keep])
-
-    # -- batched access for the matcher -------------------------------------------------
-    def batches(self, max_elements: int = 1 << 17):
-        """Yield ``(Q, T)`` padded index arrays, ``(G, g)`` and ``(G, m)``, covering every block.
-
-        Blocks of similar width are batched together so that ``G * g * m``
-        stays near ``max_elements``; padding entries are ``-1``.
-        """
-        gr = self._groups
-        n = len(gr.q_start)
-        if n == 0:
-            return
-        g_len = gr.q_stop - gr.q_start
-        t_len = gr.t_stop - gr.t_start
-        order = np.argsort(t_len, kind="stable")
-        g = int(g_len.max())
-        k = 0
-        while k < n:
-            # widths grow along `order`, so the cost of taking blocks k..stop-1 grows with stop
-            cost = np.arange(1, n - k + 1) * g * np.maximum(t_len[order[k:]], 1)
-            over = cost > max_elements
-            stop = k + max(1, int(np.argmax(over)) if over.any() else n - k)
-            sel = order[k:stop]
-            m = int(t_len[sel].max())
-            g = int(g_len[sel].max())
-            cols = np.arange(m)
-            T = gr.t_sorted[np.minimum(gr.t_start[sel, None] + cols, len(gr.t_sorted) - 1)]
-            T[cols[None, :] >= t_len[sel, None]] = -1
-            rows = np.arange(g)
-            Q = gr.q_sorted[np.minimum(gr.q_start[sel, None] + rows, len(gr.q_sorted) - 1)]
-            Q[rows[None, :] >= g_len[sel, None]] = -1
-            yield Q, T
-            k = stop
-
-    def mask_batch(self, Q: np.ndarray, T: np.ndarray) -> np.ndarray:
-        """``(G, g, m)`` bool candidate test for padded index arrays from :meth:`batches` (-1 is never a candidate)."""
-        y0, y1 = self._y0[T][:, None, :], self._y1[T][:, None, :]  # (G, 1, m)
-        across = self._n0[Q][:, :, None] * y0  # (G, g, m)
-        across += self._n1[Q][:, :, None] * y1
-        across -= self._off_n[Q][:, :, None]
-        if self.constraint == "line":
-            return np.abs(across, out=across) <= self.tol
-        along = self._d0[Q][:, :, None] * y0
-        along += self._d1[Q][:, :, None] * y1
-        along -= self._mid[Q][:, :, None]
-        np.abs(along, out=along)
-        along -= self._half[Q][:, :, None]  # > 0 beyond an end of the segment
-        np.maximum(along, 0.0, out=along)
-        np.square(along, out=along)
-        np.square(across, out=across)
-        across += along
-        return across <= self._tol2
-
-
-@dataclass(frozen=True)
-class _Groups:
-    """Blocks as slices: queries ``q_sorted[q_start:q_stop]`` against keypoints ``t_sorted[t_start:t_stop]``."""
-
-    q_sorted: np.ndarray
-    q_start: np.ndarray
-    q_stop: np.ndarray
-    t_sorted: np.ndarray
-    t_start: np.ndarray
-    t_stop: np.ndarray
-
-    @staticmethod
-    def empty() -> "_Groups":
-        z = np.zeros(0, dtype=np.intp)
-        return _Groups(z, z, z, z, z, z)
+        start = np.searchsorted(key_t, qb + (q_lo / span + 0.5), side="left")
+        stop = np.searchsorted(key_t, qb + (q_hi / span + 0.5), side="right")
+        keep = stop > start
+        return q_sorted[keep], start[keep], stop[keep], t_sorted
 
 
 def _spread(lo: np.ndarray, hi: np.ndarray, edges: np.ndarray):

@@ -1,4 +1,4 @@
-"""Guided matching and outlier rejection on arrays: the numpy core of :class:`SegmentMatcher`.
+"""Guided matching and outlier rejection on arrays: the core of :class:`SegmentMatcher`.
 
 Points are ``(N, 2)`` float64 pixels, descriptors ``(N, D)`` float32 (SIFT,
 ...) or uint8 (ORB, AKAZE, BRISK: packed bits), and matches are ``(K, 2)``
@@ -7,8 +7,9 @@ units as ``cv2.BFMatcher`` reports.
 
 Guided matching compares each query only with the keypoints of image 2 that
 lie on its epipolar segment (or line), found by
-:class:`~episeg_cv.candidates.CandidateIndex`, and computes the descriptor
-distances block by block with BLAS.
+:class:`~episeg_cv.candidates.CandidateIndex`, and scores the descriptors of
+those pairs only, one by one in compiled code (:mod:`episeg_cv._kernels`), so
+that the time follows the number of candidates.
 
 The acceptance rule of :func:`match_descriptors`
 -------------------------------------------------
@@ -41,8 +42,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from threadpoolctl import ThreadpoolController
-
+from . import _kernels
 from ._validation import as_nonnegative, as_points
 from .candidates import CandidateIndex, check_constraint
 from .geometry import Rejection, TwoViewGeometry, _point_segment_distance
@@ -113,70 +113,60 @@ def _check_points(points, descriptors, name, dname):
 
 
 class _Distances:
-    """Descriptor distances for blocks of pairs; BLAS for L2 and Hamming."""
+    """Descriptor scores, computed pair by pair in compiled code (:mod:`episeg_cv._kernels`).
+
+    Scores increase with the distance: squared distance for L2, the distance itself for L1 and
+    Hamming, in float32. They rank candidates; :meth:`exact` gives the distances ``cv2`` reports.
+    """
 
     def __init__(self, d1: np.ndarray, d2: np.ndarray, norm: str):
         self.norm = norm
+        self.code = _kernels.NORM_CODES[norm]
         self.raw1, self.raw2 = d1, d2
-        if norm == "hamming":
-            self.nbits = 8 * d1.shape[1]
-            self.a = (np.unpackbits(d1, axis=1).astype(np.float32) * 2 - 1)
-            self.b = (np.unpackbits(d2, axis=1).astype(np.float32) * 2 - 1)
-        else:
-            self.a = d1.astype(np.float32, copy=False)
-            self.b = d2.astype(np.float32, copy=False)
-            self.aa = np.einsum("ij,ij->i", self.a, self.a)
-            self.bb = np.einsum("ij,ij->i", self.b, self.b)
+        dtype = np.uint8 if norm == "hamming" else np.float32
+        self.a = np.ascontiguousarray(d1, dtype=dtype)
+        self.b = np.ascontiguousarray(d2, dtype=dtype)
 
-    def scores(self, qi: np.ndarray, tj: np.ndarray) -> np.ndarray:
-        """``(len(qi), len(tj))`` float32 scores, increasing with distance (squared for L2)."""
-        if self.norm in ("l2", "l2sqr"):  # one 2-D product (BLAS)
-            a = self.a if len(qi) == len(self.a) and np.array_equal(qi, np.arange(len(qi))) else self.a[qi]
-            return _squared_from_dot(a @ self.b[tj].T, self.aa[qi][:, None], self.bb[tj][None, :])
-        return self.scores_batch(np.asarray(qi)[None], np.asarray(tj)[None])[0]
+    def paired(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+        """``(K,)`` scores of the pairs ``(i[k], j[k])``."""
+        return _kernels.paired_scores(self.a, self.b, np.asarray(i, np.int64), np.asarray(j, np.int64), self.code)
 
     def nearest_excluding(self, qi: np.ndarray, tj: np.ndarray, exclude: np.ndarray, chunk: int = 1024) -> np.ndarray:
         """``(len(qi),)`` smallest score of each query ``qi[r]`` over the keypoints ``tj`` (sorted), leaving out
         ``exclude[r]``; inf when nothing is left.
 
-        Row chunks with reused buffers: the same arithmetic as :meth:`scores`, without two fresh
-        ``len(qi) x len(tj)`` arrays (their page faults cost more than the product on a VM).
+        Every query against the same keypoints is a dense product: for L2 it is done with BLAS, in
+        row chunks with reused buffers (fresh ``len(qi) x len(tj)`` arrays cost more in page faults
+        than the product on a VM), and the exclusion found by ``searchsorted``.
         """
+        qi, tj, exclude = (np.asarray(v, dtype=np.int64) for v in (qi, tj, exclude))
+        if self.norm not in ("l2", "l2sqr"):
+            return _kernels.nearest_excluding(self.a, self.b, qi, tj, exclude, self.code)
         out = np.empty(len(qi), dtype=np.float32)
         if len(qi) == 0 or len(tj) == 0:
             out.fill(np.inf)
             return out
         pos = np.minimum(np.searchsorted(tj, exclude), len(tj) - 1)
         hit = tj[pos] == exclude
-        if self.norm not in ("l2", "l2sqr"):
-            ps = self.scores(qi, tj)
-            ps[np.flatnonzero(hit), pos[hit]] = np.inf
-            return ps.min(axis=1)
-        bt = np.ascontiguousarray(self.b[tj].T)
-        bb = self.bb[tj][None, :]
+        b = self.b[tj]
+        bt = np.ascontiguousarray(b.T)
+        bb = np.einsum("ij,ij->i", b, b)[None, :]
         n = min(chunk, len(qi))
-        rows = np.empty((n, self.a.shape[1]), dtype=self.a.dtype)
+        rows = np.empty((n, self.a.shape[1]), dtype=np.float32)
         prod = np.empty((n, len(tj)), dtype=np.float32)
         for a in range(0, len(qi), chunk):
             z = min(a + chunk, len(qi))
-            np.take(self.a, qi[a:z], axis=0, out=rows[:z - a], mode="clip")
-            p = np.matmul(rows[:z - a], bt, out=prod[:z - a])
-            _squared_from_dot(p, self.aa[qi[a:z]][:, None], bb)
-            r = np.flatnonzero(hit[a:z])
-            p[r, pos[a:z][r]] = np.inf
+            r = rows[:z - a]
+            np.take(self.a, qi[a:z], axis=0, out=r, mode="clip")
+            p = np.matmul(r, bt, out=prod[:z - a])
+            p *= -2.0  # |a|^2 + |b|^2 - 2 a.b, clamped at 0 (rounding)
+            p += np.einsum("ij,ij->i", r, r)[:, None]
+            p += bb
+            np.maximum(p, 0.0, out=p)
+            h = np.flatnonzero(hit[a:z])
+            p[h, pos[a:z][h]] = np.inf
             np.min(p, axis=1, out=out[a:z])
         return out
-
-    def scores_batch(self, Q: np.ndarray, T: np.ndarray) -> np.ndarray:
-        """``(G, g, m)`` float32 scores for padded index arrays ``(G, g)`` and ``(G, m)``; -1 gives row 0
-        (the caller masks those entries)."""
-        Q, T = np.maximum(Q, 0), np.maximum(T, 0)
-        if self.norm == "l1":
-            return np.abs(self.a[Q][:, :, None, :] - self.b[T][:, None, :, :]).sum(-1)
-        prod = self.a[Q] @ self.b[T].transpose(0, 2, 1)
-        if self.norm == "hamming":
-            return (self.nbits - prod) * np.float32(0.5)
-        return _squared_from_dot(prod, self.aa[Q][:, :, None], self.bb[T][:, None, :])
 
     def to_distance(self, scores: np.ndarray) -> np.ndarray:
         return np.sqrt(scores) if self.norm == "l2" else scores
@@ -223,17 +213,9 @@ def _exact(raw1: np.ndarray, raw2: np.ndarray, norm: str, i: np.ndarray, j: np.n
     return np.sqrt(out, out=out) if norm == "l2" else out
 
 
-def _squared_from_dot(prod, aa, bb):
-    """``|a|^2 + |b|^2 - 2 a.b``, in place in ``prod``, clamped at 0 (rounding)."""
-    prod *= -2.0
-    prod += aa
-    prod += bb
-    return np.maximum(prod, 0.0, out=prod)
-
-
 @dataclass(frozen=True)
 class GuidedResult:
-    """The nearest candidates of every query, from one scan of the candidate blocks.
+    """The nearest candidates of every query, from one scan of the candidates.
 
     Attributes
     ----------
@@ -254,77 +236,18 @@ class GuidedResult:
     column_best: np.ndarray
 
 
-_BLAS = []
-
-
-def _one_blas_thread():
-    """A context limiting BLAS to one thread; the controller is made once (making one costs about 1 ms)."""
-    if not _BLAS:
-        _BLAS.append(ThreadpoolController())
-    return _BLAS[0].limit(limits=1, user_api="blas")
-
-
-def _scan(index: CandidateIndex, dist: _Distances, k: int, radius: float | None = None):
-    """One pass over the candidate blocks, in padded batches: the k nearest candidates of each query,
-    the nearest query of each keypoint, and (with ``radius``) every candidate pair within it."""
+def _scan(index: CandidateIndex, dist: _Distances, k: int) -> GuidedResult:
+    """One compiled pass over the candidates: the k nearest of each query, the nearest query of each
+    keypoint, and the candidate counts."""
     n1, n2 = len(index.points1), len(index.points2)
     idx = np.full((n1, k), -1, dtype=np.intp)
     sc = np.full((n1, k), np.inf, dtype=np.float32)
     counts = np.zeros(n1, dtype=np.intp)
     col_s = np.full(n2, np.inf, dtype=np.float32)
     col_i = np.full(n2, -1, dtype=np.intp)
-    within = []
-    # The blocks are small: BLAS threads only add overhead there (and stall badly on a busy machine).
-    with _one_blas_thread():
-        for Q, T in index.batches():
-            m = index.mask_batch(Q, T)  # (G, g, w)
-            s = dist.scores_batch(Q, T)
-            q_ok = Q >= 0
-            counts[Q[q_ok]] = np.count_nonzero(m, axis=2)[q_ok]
-            if radius is not None:
-                b, r, c = np.nonzero(m & (s <= radius))
-                within.append((Q[b, r], T[b, c], s[b, r, c]))
-            np.copyto(s, np.inf, where=np.logical_not(m, out=m))
-            _column_best(s, Q, T, col_s, col_i)
-            _top_k(s, Q, T, k, idx, sc)
-    return GuidedResult(idx, sc, counts, col_i), within
-
-
-def _column_best(s, Q, T, col_s, col_i):
-    """Update the nearest query (``col_i``, score ``col_s``) of every keypoint in ``T``."""
-    r = np.argmin(s, axis=1)  # (G, w)
-    v = np.take_along_axis(s, r[:, None, :], axis=1)[:, 0, :]
-    ok = np.isfinite(v)
-    t, v, q = T[ok], v[ok], np.take_along_axis(Q, r, axis=1)[ok]
-    # a keypoint may sit in several blocks of the batch: take the minimum, then its query
-    np.minimum.at(col_s, t, v)
-    won = v == col_s[t]
-    col_i[t[won]] = q[won]
-
-
-def _top_k(s, Q, T, k, idx, sc):
-    """Write the ``k`` smallest entries of each row of ``s`` (nearest first) into ``idx``/``sc`` at rows ``Q``."""
-    ok = Q >= 0
-    q = Q[ok]
-    kk = min(k, s.shape[2])
-    if kk <= 2:  # repeated argmin beats a partition for the common k = 1, 2
-        for col in range(kk):
-            j = np.argmin(s, axis=2)  # (G, g)
-            v = np.take_along_axis(s, j[:, :, None], axis=2)[:, :, 0]
-            t = np.take_along_axis(T, j, axis=1)
-            sc[q, col] = v[ok]
-            idx[q, col] = np.where(np.isfinite(v), t, -1)[ok]
-            if col + 1 < kk:
-                np.put_along_axis(s, j[:, :, None], np.inf, axis=2)
-        return
-    part = np.argpartition(s, kk - 1, axis=2)[:, :, :kk] if kk < s.shape[2] else \
-        np.broadcast_to(np.arange(kk), s.shape[:2] + (kk,))
-    ps = np.take_along_axis(s, part, axis=2)
-    o = np.argsort(ps, axis=2, kind="stable")
-    ps, part = np.take_along_axis(ps, o, axis=2), np.take_along_axis(part, o, axis=2)
-    t = np.take_along_axis(np.broadcast_to(T[:, None, :], s.shape), part, axis=2)
-    sc[q, :kk] = ps[ok]
-    idx[q, :kk] = np.where(np.isfinite(ps), t, -1)[ok]
+    b_sorted = np.take(dist.b, index.t_sorted, axis=0)  # each slice's descriptors in contiguous memory
+    index._run(_kernels.knn_scan, dist.a, b_sorted, dist.code, idx, sc, counts, col_s, col_i)
+    return GuidedResult(idx, sc, counts, col_i)
 
 
 def _check_geometry(geometry):
@@ -344,7 +267,7 @@ def _prepare(descriptors1, descriptors2, points1, points2, geometry, norm, tol, 
 
 
 def knn_descriptors(descriptors1, descriptors2, points1, points2, geometry, *, k=2, norm="l2", tol=2.0,
-                    depth_range=(0.0, np.inf), constraint="segment", group_size=32):
+                    depth_range=(0.0, np.inf), constraint="segment"):
     """The ``k`` nearest candidates of each query on its segment (or line).
 
     Parameters
@@ -381,9 +304,8 @@ def knn_descriptors(descriptors1, descriptors2, points1, points2, geometry, *, k
     k = _check_k(k)
     if constraint == "none":
         raise ValueError("knn_descriptors needs constraint 'segment' or 'line'; use cv2.BFMatcher for 'none'")
-    index = CandidateIndex(geometry, p1, p2, tol=tol, depth_range=depth_range, constraint=constraint,
-                           group_size=group_size)
-    return _scan(index, _Distances(d1, d2, norm), k)[0]
+    index = CandidateIndex(geometry, p1, p2, tol=tol, depth_range=depth_range, constraint=constraint)
+    return _scan(index, _Distances(d1, d2, norm), k)
 
 
 def _check_k(k):
@@ -403,12 +325,13 @@ def radius_descriptors(descriptors1, descriptors2, points1, points2, geometry, *
     max_distance = as_nonnegative(max_distance, "maxDistance")
     index = CandidateIndex(geometry, p1, p2, tol=tol, depth_range=depth_range, constraint=constraint)
     dist = _Distances(d1, d2, norm)
-    limit = max_distance**2 if norm == "l2" else max_distance
-    _, within = _scan(index, dist, 1, radius=np.float32(limit))
-    i = np.concatenate([w[0] for w in within] + [np.zeros(0, np.intp)])
-    j = np.concatenate([w[1] for w in within] + [np.zeros(0, np.intp)])
+    i, j = index._run(_kernels.candidate_pairs)
+    # the scores rank, with float32 rounding: a slack keeps every pair near the boundary for the exact check
+    limit = (max_distance**2 if norm == "l2" else max_distance) * (1 + 1e-4) + 1e-6
+    near = dist.paired(i, j) <= limit
+    i, j = i[near], j[near]
     d = dist.exact(i, j)
-    keep = d <= max_distance  # exact check at the boundary
+    keep = d <= max_distance
     i, j, d = i[keep], j[keep], d[keep]
     o = np.lexsort((j, d, i))
     return np.column_stack([i[o], j[o]]).astype(np.intp), d[o]
@@ -453,7 +376,7 @@ class GuidedMatches:
 
 def guided_matches(descriptors1, descriptors2, points1, points2, geometry, *, norm="l2", tol=2.0,
                    depth_range=(0.0, np.inf), constraint="segment", pad=DEFAULT_PAD, cross_check=False, rng=0,
-                   group_size=32, bucket_size=64) -> GuidedMatches:
+                   bucket_size=64) -> GuidedMatches:
     """Nearest candidate of every query on its segment (or line), with its ratio and mutual flags.
 
     The thresholds of :func:`match_descriptors` are then a cheap filter
@@ -462,8 +385,7 @@ def guided_matches(descriptors1, descriptors2, points1, points2, geometry, *, no
     """
     i, j, ratio, mutual, counts, dist = _guided(descriptors1, descriptors2, points1, points2, geometry, norm=norm,
                                                 tol=tol, depth_range=depth_range, constraint=constraint, pad=pad,
-                                                cross_check=cross_check, rng=rng, group_size=group_size,
-                                                bucket_size=bucket_size)
+                                                cross_check=cross_check, rng=rng, bucket_size=bucket_size)
     return GuidedMatches(np.column_stack([i, j]).astype(np.intp), dist.exact(i, j), ratio, mutual, counts)
 
 
@@ -473,7 +395,7 @@ def _keep(ratio_values, mutual_values, ratio, mutual):
 
 
 def _guided(descriptors1, descriptors2, points1, points2, geometry, *, norm, tol, depth_range, constraint, pad,
-            cross_check, rng, group_size, bucket_size, rule=None):
+            cross_check, rng, bucket_size, rule=None):
     """:func:`guided_matches` without the exact distances: ``(i, j, ratio, mutual, counts, distances)``, the
     last the :class:`_Distances` to compute them with (only for the pairs kept, in :func:`match_descriptors`).
 
@@ -489,16 +411,15 @@ def _guided(descriptors1, descriptors2, points1, points2, geometry, *, norm, tol
         raise ValueError("guided matching needs constraint 'segment' or 'line'; use cv2.BFMatcher for 'none'")
     dist = _Distances(d1, d2, norm)
     index = CandidateIndex(geometry, p1, p2, tol=tol, depth_range=depth_range, constraint=constraint,
-                           group_size=group_size, bucket_size=bucket_size)
-    res, _ = _scan(index, dist, 2)
+                           bucket_size=bucket_size)
+    res = _scan(index, dist, 2)
     i = np.flatnonzero(res.indices[:, 0] >= 0)
     j = res.indices[i, 0]
     s1, s2 = res.scores[i, 0], res.scores[i, 1]
     if cross_check:
         # bounds on z1 are not bounds on z2: the reverse pass uses the whole half-line (0, inf)
-        back = CandidateIndex(geometry.inverse(), p2, p1, tol=tol, constraint=constraint, group_size=group_size,
-                              bucket_size=bucket_size)
-        rev, _ = _scan(back, _Distances(d2, d1, norm), 1)
+        back = CandidateIndex(geometry.inverse(), p2, p1, tol=tol, constraint=constraint, bucket_size=bucket_size)
+        rev = _scan(back, _Distances(d2, d1, norm), 1)
         mutual = rev.indices[j, 0] == i
     else:
         mutual = res.column_best[j] == i
@@ -522,7 +443,7 @@ def _ratio(d1: np.ndarray, d2: np.ndarray) -> np.ndarray:
 
 def match_descriptors(descriptors1, descriptors2, points1, points2, geometry, *, norm="l2", tol=2.0,
                       depth_range=(0.0, np.inf), constraint="segment", ratio=DEFAULT_RATIO, mutual=True,
-                      pad=DEFAULT_PAD, cross_check=False, rng=0, group_size=32, bucket_size=64):
+                      pad=DEFAULT_PAD, cross_check=False, rng=0, bucket_size=64):
     """Match descriptors, comparing each query only with the keypoints on its epipolar segment.
 
     Parameters
@@ -542,8 +463,8 @@ def match_descriptors(descriptors1, descriptors2, points1, points2, geometry, *,
         ``geometry.inverse()`` (its own segments in image 1).
     rng : int or numpy.random.Generator, optional
         Seed for the padding draw (fixed by default, so results repeat).
-    group_size, bucket_size : int, optional
-        Block shape of the candidate index (speed only; results do not change).
+    bucket_size : int, optional
+        Queries per pencil bucket of the candidate index (speed only; results do not change).
 
     Returns
     -------
@@ -568,7 +489,7 @@ def match_descriptors(descriptors1, descriptors2, points1, points2, geometry, *,
     ratio = check_ratio(ratio, "ratio")
     i, j, r, mu, _, dist = _guided(descriptors1, descriptors2, points1, points2, geometry, norm=norm, tol=tol,
                                    depth_range=depth_range, constraint=constraint, pad=pad, cross_check=cross_check,
-                                   rng=rng, group_size=group_size, bucket_size=bucket_size,
+                                   rng=rng, bucket_size=bucket_size,
                                    rule=(ratio, mutual or cross_check))
     keep = _keep(r, mu, ratio, mutual or cross_check)
     i, j = i[keep], j[keep]

@@ -52,9 +52,9 @@ def brute_force(geometry, points1, points2, tol, depth_range, constraint):
     return strict, loose
 
 
-def check_against_brute_force(geometry, p1, p2, tol, depth_range, constraint, group_size):
+def check_against_brute_force(geometry, p1, p2, tol, depth_range, constraint, bucket_size):
     index = CandidateIndex(geometry, p1, p2, tol=tol, depth_range=depth_range, constraint=constraint,
-                           group_size=group_size)
+                           bucket_size=bucket_size)
     pairs = index.pairs()
     assert pairs.dtype == np.intp and pairs.ndim == 2 and pairs.shape[1] == 2
     # sorted by query then train, no duplicates
@@ -152,16 +152,16 @@ def problems(draw):
         zmin = rng.uniform(0, 2, n1)
         depth_range = (zmin, zmin + rng.uniform(0.01, 10, n1))
     p2 = planted_points2(g, p1, tol, depth_range, size, rng, draw(st.integers(0, 80)))
-    group_size = draw(st.sampled_from([1, 3, 32]))
-    return g, p1, p2, tol, depth_range, group_size, kind
+    bucket_size = draw(st.sampled_from([1, 3, 32]))
+    return g, p1, p2, tol, depth_range, bucket_size, kind
 
 
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 @given(problems())
 def test_pairs_equal_brute_force_on_random_poses(problem):
-    g, p1, p2, tol, depth_range, group_size, kind = problem
-    seg_pairs = check_against_brute_force(g, p1, p2, tol, depth_range, "segment", group_size)
-    line_pairs = check_against_brute_force(g, p1, p2, tol, depth_range, "line", group_size)
+    g, p1, p2, tol, depth_range, bucket_size, kind = problem
+    seg_pairs = check_against_brute_force(g, p1, p2, tol, depth_range, "segment", bucket_size)
+    line_pairs = check_against_brute_force(g, p1, p2, tol, depth_range, "line", bucket_size)
     if np.any(g.t != 0):  # with t = 0 the line is undefined (F = 0)
         assert_segment_within_line(seg_pairs, line_pairs)
 
@@ -193,11 +193,11 @@ def fixed_problem(name, n1=200, n2=400, seed=0, tol=2.0, depth_range=(0.0, np.in
 
 
 @pytest.mark.parametrize("name", sorted(FIXED_POSES))
-@pytest.mark.parametrize("group_size", [1, 7, 64])
-def test_pairs_equal_brute_force_fixed_poses(name, group_size):
+@pytest.mark.parametrize("bucket_size", [1, 7, 64])
+def test_pairs_equal_brute_force_fixed_poses(name, bucket_size):
     g, p1, p2 = fixed_problem(name)
-    seg = check_against_brute_force(g, p1, p2, 2.0, (0.0, np.inf), "segment", group_size)
-    line = check_against_brute_force(g, p1, p2, 2.0, (0.0, np.inf), "line", group_size)
+    seg = check_against_brute_force(g, p1, p2, 2.0, (0.0, np.inf), "segment", bucket_size)
+    line = check_against_brute_force(g, p1, p2, 2.0, (0.0, np.inf), "line", bucket_size)
     if name != "pure_rotation":
         assert_segment_within_line(seg, line)
     if name in ("general", "forward", "t3_zero"):

@@ -5,8 +5,10 @@
   must equal ``guided_matches(...).accept(...)``, which does neither.
 - ``_exact`` (paired distances in chunks with reused buffers) against a direct
   row-by-row computation, across chunk boundaries and every norm and dtype.
-- ``_Distances.nearest_excluding`` (row chunks, searchsorted exclusion) against
-  the dense ``scores`` matrix with the excluded entries masked.
+- ``_Distances.nearest_excluding`` (BLAS row chunks and searchsorted exclusion
+  for L2, a compiled loop otherwise) against the dense score matrix from the
+  definition, with the excluded entries masked.
+- The compiled scores (``_Distances.paired``) against ``cv2.norm``.
 - ``filter_pairs`` computes the segment distance only for pairs near the line:
   it must equal the definition also on pairs planted at the tolerance boundary
   and on undefined lines (pure rotation).
@@ -83,6 +85,14 @@ def test_exact_in_chunks_equals_direct(norm, dtype, n, chunk):
             assert d == pytest.approx(ref, rel=1e-5, abs=1e-6)
 
 
+def dense_scores(d1, d2, norm):
+    """(N1, N2) scores by the definition: squared L2, L1, or Hamming on packed bits."""
+    if norm == "hamming":
+        return np.unpackbits(d1[:, None, :] ^ d2[None, :, :], axis=2).sum(2).astype(np.float32)
+    diff = d1[:, None, :].astype(np.float64) - d2[None, :, :]
+    return (np.abs(diff).sum(2) if norm == "l1" else (diff**2).sum(2)).astype(np.float32)
+
+
 @pytest.mark.parametrize("norm,dtype", [("l2", np.float32), ("l2sqr", np.float32), ("l1", np.float32),
                                         ("hamming", np.uint8)])
 @pytest.mark.parametrize("chunk", [1, 3, 1024])
@@ -93,13 +103,30 @@ def test_nearest_excluding_equals_dense(norm, dtype, chunk):
     qi = np.sort(rng.choice(40, 25, replace=False))
     tj = np.sort(rng.choice(60, 12, replace=False))
     exclude = np.where(rng.random(25) < 0.5, rng.choice(tj, 25), rng.integers(0, 60, 25))  # in tj or not
-    dense = dist.scores(qi, tj)
+    dense = dense_scores(d1[qi], d2[tj], norm)
     dense[tj[None, :] == exclude[:, None]] = np.inf
     got = dist.nearest_excluding(qi, tj, exclude, chunk=chunk)
-    np.testing.assert_array_equal(got, dense.min(axis=1))
+    np.testing.assert_allclose(got, dense.min(axis=1), rtol=1e-5)
     # one reference keypoint, excluded: nothing left
     one = dist.nearest_excluding(qi[:1], tj[:1], tj[:1], chunk=chunk)
     assert one.tolist() == [np.inf]
+
+
+@pytest.mark.parametrize("norm,dtype,dim", [("l2", np.float32, 128), ("l2sqr", np.float32, 7), ("l1", np.float32, 33),
+                                            ("l2", np.uint8, 32), ("hamming", np.uint8, 61), ("hamming", np.uint8, 1)])
+def test_compiled_scores_equal_cv2_norm(norm, dtype, dim):
+    rng = np.random.default_rng(6)
+    if dtype == np.uint8:
+        d1, d2 = (rng.integers(0, 256, (20, dim), dtype=np.uint8) for _ in range(2))
+    else:
+        d1, d2 = (rng.normal(size=(20, dim)).astype(np.float32) for _ in range(2))
+    i, j = rng.integers(0, 20, 50), rng.integers(0, 20, 50)
+    got = _Distances(d1, d2, norm).paired(i, j)
+    code = {"l2": cv2.NORM_L2SQR, "l2sqr": cv2.NORM_L2SQR, "l1": cv2.NORM_L1, "hamming": cv2.NORM_HAMMING}[norm]
+    ref = [cv2.norm(d1[a].astype(np.float32) if norm != "hamming" else d1[a],
+                    d2[b].astype(np.float32) if norm != "hamming" else d2[b], code) for a, b in zip(i, j)]
+    assert got.dtype == np.float32
+    np.testing.assert_allclose(got, ref, rtol=1e-5, atol=1e-6)
 
 
 def planted_pairs(g, p1, tol, rng, n):
@@ -179,3 +206,31 @@ def test_finiteness_check_on_huge_finite_values():
         y[2, 3] = bad
         with pytest.raises(ValueError, match="descriptors2"):
             check_descriptors(np.zeros((3, 4), np.float32), y, "l2")
+
+
+@pytest.mark.parametrize("constraint", ["segment", "line"])
+def test_bucket_size_changes_speed_only(constraint):
+    d1, d2, p1, p2 = random_problem(n1=400, n2=450, seed=8)
+    g = geometry()
+    ref = guided_matches(d1, d2, p1, p2, g, constraint=constraint)
+    for bucket_size in (1, 7, 1000):
+        got = guided_matches(d1, d2, p1, p2, g, constraint=constraint, bucket_size=bucket_size)
+        np.testing.assert_array_equal(got.pairs, ref.pairs)
+        np.testing.assert_array_equal(got.ratio, ref.ratio)
+        np.testing.assert_array_equal(got.mutual, ref.mutual)
+        np.testing.assert_array_equal(got.candidates, ref.candidates)
+
+
+def test_knn_ties_go_to_the_smaller_index():
+    """Two keypoints of image 2 with the same descriptor, both candidates: the smaller index comes first,
+    as in cv2.BFMatcher; and a keypoint's nearest query on a tie is the smaller query index."""
+    K = [[100, 0, 50], [0, 100, 50], [0, 0, 1]]
+    g = TwoViewGeometry(K, K, np.eye(3), [-1, 0, 0], image_size1=(100, 100), image_size2=(100, 100))
+    p1 = np.array([[60.0, 50.0], [60.0, 50.5]])
+    p2 = np.array([[10.0, 50.0], [40.0, 50.0], [20.0, 50.0]])  # all on both segments (row y = 50, x < 60)
+    d1 = np.array([[1, 0, 0, 0], [1, 0, 0, 0]], dtype=np.float32)
+    d2 = np.array([[0, 0, 0, 0], [1, 0, 0, 1], [1, 0, 0, 1]], dtype=np.float32)  # 1 and 2 tie for both queries
+    from episeg_cv import knn_descriptors
+    res = knn_descriptors(d1, d2, p1, p2, g, k=3)
+    assert res.indices.tolist() == [[0, 1, 2], [0, 1, 2]]
+    assert res.column_best.tolist() == [0, 0, 0]
