@@ -44,12 +44,13 @@ _POPCOUNT = np.array([bin(i).count("1") for i in range(256)], dtype=np.uint8)
 _SUM_FAST = {"reassoc", "contract", "nsz"}
 
 
-@nb.njit(inline="always")
-def _is_candidate(geo, q, y0, y1, is_line, tol, tol2):
-    across = geo[q, 0] * y0 + geo[q, 1] * y1 - geo[q, 2]
+@nb.njit(cache=True)
+def _is_candidate(n0, n1, off, d0, d1, mid, half, y0, y1, is_line, tol, tol2):
+    """The exact test, in float64, in the order written (scalar arguments: no reference counting)."""
+    across = n0 * y0 + n1 * y1 - off
     if is_line:
         return abs(across) <= tol
-    along = abs(geo[q, 3] * y0 + geo[q, 4] * y1 - geo[q, 5]) - geo[q, 6]
+    along = abs(d0 * y0 + d1 * y1 - mid) - half
     if along < 0.0:
         along = 0.0
     return across * across + along * along <= tol2
@@ -74,16 +75,17 @@ def _l1(A, q, B, t):
 
 @nb.njit(cache=True)
 def _hamming(A, q, B, t):
-    s = 0
+    h = 0
     for f in range(A.shape[1]):
-        s += _POPCOUNT[np.uint8(A[q, f]) ^ np.uint8(B[t, f])]
-    return np.float32(s)
+        h += _POPCOUNT[np.uint8(A[q, f]) ^ np.uint8(B[t, f])]
+    return np.float32(h)
 
 
-# Inlined into each kernel, so that the norm is one predictable branch and each distance loop keeps
-# its own (fast-math) compilation.
+# Inlined (numba IR) into each kernel: the norm is one predictable branch, and each sum keeps its own
+# fast-math compilation (the kernels themselves are compiled without it).
 @nb.njit(inline="always")
 def _score(A, q, B, t, norm):
+    """Score of ``A[q]`` against ``B[t]``, float32."""
     if norm == HAMMING:
         return _hamming(A, q, B, t)
     if norm == L1:
@@ -107,13 +109,19 @@ def knn_scan(q_sorted, q_start, q_stop, t_sorted, geo, y, is_line, tol, tol2, A,
     k = idx.shape[1]
     for r in range(q_sorted.shape[0]):
         q = q_sorted[r]
+        n0, n1, off, d0, d1, mid, half = geo[q, 0], geo[q, 1], geo[q, 2], geo[q, 3], geo[q, 4], geo[q, 5], geo[q, 6]
         c = 0
         for p in range(q_start[r], q_stop[r]):
-            if not _is_candidate(geo, q, y[p, 0], y[p, 1], is_line, tol, tol2):
+            if not _is_candidate(n0, n1, off, d0, d1, mid, half, y[p, 0], y[p, 1], is_line, tol, tol2):
                 continue
             c += 1
             t = t_sorted[p]
-            s = _score(A, q, B, p, norm)
+            if norm == HAMMING:  # (_score, written out: numba's inlining of it costs ~15 % here)
+                s = _hamming(A, q, B, p)
+            elif norm == L1:
+                s = _l1(A, q, B, p)
+            else:
+                s = _l2sqr(A, q, B, p)
             last = sc[q, k - 1]
             if s < last or (s == last and (idx[q, k - 1] < 0 or t < idx[q, k - 1])):
                 m = k - 1
@@ -140,8 +148,9 @@ def candidate_pairs(q_sorted, q_start, q_stop, t_sorted, geo, y, is_line, tol, t
     n = 0
     for r in range(q_sorted.shape[0]):
         q = q_sorted[r]
+        n0, n1, off, d0, d1, mid, half = geo[q, 0], geo[q, 1], geo[q, 2], geo[q, 3], geo[q, 4], geo[q, 5], geo[q, 6]
         for p in range(q_start[r], q_stop[r]):
-            if _is_candidate(geo, q, y[p, 0], y[p, 1], is_line, tol, tol2):
+            if _is_candidate(n0, n1, off, d0, d1, mid, half, y[p, 0], y[p, 1], is_line, tol, tol2):
                 i[n] = q
                 j[n] = t_sorted[p]
                 n += 1
@@ -172,3 +181,88 @@ def nearest_excluding(A, B, qi, tj, exclude, norm):
                 best = s
         out[r] = best
     return out
+
+
+# -- building the index -----------------------------------------------------------------
+@nb.njit(inline="always")
+def _pencil_angle(e, u, v, c0, c1, s, x0, x1):
+    """Angle in ``[0, pi)`` of the line through the epipole ``e`` and pixel ``(x0, x1)``, in the pencil
+    basis ``(u, v)``, and the first two coefficients of that line (normalised coordinates
+    ``(x - c) / s``)."""
+    y0 = (x0 - c0) / s
+    y1 = (x1 - c1) / s
+    l0 = e[1] - e[2] * y1
+    l1 = e[2] * y0 - e[0]
+    l2 = e[0] * y1 - e[1] * y0
+    a = l0 * u[0] + l1 * u[1] + l2 * u[2]
+    b = l0 * v[0] + l1 * v[1] + l2 * v[2]
+    return np.arctan2(b, a) % np.pi, l0, l1
+
+
+@nb.njit(cache=True, nogil=True)
+def pencil_intervals(e, u, v, c0, c1, s, tol, y):
+    """For each pixel ``y (N, 2)``: the interval ``[lo, lo + width]`` (mod pi) of pencil angles of the
+    lines through the epipole that pass within ``tol`` of it (``width = pi``: all of them).
+
+    The lines through the epipole at distance ``tol`` from ``y`` touch the circle of radius ``tol``
+    around it; they are found as the lines through the points ``y +- tau n``, with ``n`` the normal
+    of the line through ``y`` and ``tau = tol / sqrt(1 - (tol / r)^2)``, ``r`` the distance from ``y``
+    to the epipole. Both are grown slightly, for rounding.
+    """
+    n = y.shape[0]
+    lo = np.empty(n)
+    width = np.empty(n)
+    for k in range(n):
+        phi, l0, l1 = _pencil_angle(e, u, v, c0, c1, s, y[k, 0], y[k, 1])
+        h = max(np.hypot(l0, l1), 1e-300)
+        # tol / r (r infinite for an epipole at infinity)
+        r = np.hypot(e[0] - (y[k, 0] - c0) / s * e[2], e[1] - (y[k, 1] - c1) / s * e[2])
+        ratio = (tol / s) * abs(e[2]) / r if r > 0 else np.inf
+        if ratio >= 1 - 1e-9:  # y is within tol of the epipole: every line
+            lo[k] = 0.0
+            width[k] = np.pi
+            continue
+        tau = tol / np.sqrt(max(1.0 - ratio * ratio, 1e-18)) * (1 + 1e-9) + 1e-9
+        a, _, _ = _pencil_angle(e, u, v, c0, c1, s, y[k, 0] - tau * l0 / h, y[k, 1] - tau * l1 / h)
+        b, _, _ = _pencil_angle(e, u, v, c0, c1, s, y[k, 0] + tau * l0 / h, y[k, 1] + tau * l1 / h)
+        w = (b - a) % np.pi
+        if (phi - a) % np.pi > w:  # the arc from a to b must contain phi; otherwise it is the other one
+            lo[k] = b
+            width[k] = np.pi - w
+        else:
+            lo[k] = a
+            width[k] = w
+    return lo, width
+
+
+@nb.njit(cache=True, nogil=True)
+def spread(lo, hi, edges):
+    """Every bucket ``[edges[b], edges[b + 1])`` that each angle interval ``[lo, hi]`` overlaps (``hi``
+    may pass pi: the rest continues at 0). Returns ``(item, bucket)`` int64 arrays, each pair once."""
+    n_b = edges.shape[0] - 1
+    n = lo.shape[0]
+    first = np.empty(n, dtype=np.int64)
+    last = np.empty(n, dtype=np.int64)
+    wrap_last = np.full(n, -1, dtype=np.int64)
+    total = 0
+    for k in range(n):
+        h = min(hi[k], lo[k] + np.pi)
+        k0 = min(max(np.searchsorted(edges, lo[k], side="right") - 1, 0), n_b - 1)
+        k1 = min(max(np.searchsorted(edges, min(h, np.pi), side="right") - 1, 0), n_b - 1)
+        first[k], last[k] = k0, k1
+        total += max(k1 - k0 + 1, 0)
+        if h > np.pi:  # up to (not into) the buckets already covered
+            w1 = min(max(np.searchsorted(edges, h - np.pi, side="right") - 1, 0), n_b - 1)
+            wrap_last[k] = min(w1, k0 - 1)
+            total += wrap_last[k] + 1
+    item = np.empty(total, dtype=np.int64)
+    bucket = np.empty(total, dtype=np.int64)
+    m = 0
+    for k in range(n):
+        for b in range(first[k], last[k] + 1):
+            item[m], bucket[m] = k, b
+            m += 1
+        for b in range(0, wrap_last[k] + 1):
+            item[m], bucket[m] = k, b
+            m += 1
+    return item, bucket

@@ -158,20 +158,6 @@ class CandidateIndex:
         u /= np.linalg.norm(u)
         return e, u, np.cross(e, u)
 
-    def _phi_of_points(self, e, u, v, y):
-        """Pencil angle in ``[0, pi)`` of the line through the epipole and each pixel ``y``, and that line.
-
-        The line is ``l = e x (yn, 1)`` in normalised coordinates ``yn = (y - c) / s``.
-        """
-        y0 = (y[:, 0] - self._c[0]) / self._s
-        y1 = (y[:, 1] - self._c[1]) / self._s
-        l0 = e[1] - e[2] * y1
-        l1 = e[2] * y0 - e[0]
-        l2 = e[0] * y1 - e[1] * y0
-        a = l0 * u[0] + l1 * u[1] + l2 * u[2]
-        b = l0 * v[0] + l1 * v[1] + l2 * v[2]
-        return np.mod(np.arctan2(b, a), np.pi), (l0, l1)
-
     def _build(self, bucket_size: int):
         """``(q_sorted, q_start, q_stop, t_sorted)``: the slices of :attr:`t_sorted` to scan per query."""
         n2 = len(self.points2)
@@ -198,25 +184,8 @@ class CandidateIndex:
             cuts = np.sort(q_phi)[(np.arange(1, n_buckets) * q_ok.size) // n_buckets]
             edges = np.concatenate([[0.0], cuts, [np.pi]])
             # keypoints: the interval of pencil angles of lines within tol of them
-            phi_y, (l0, l1) = self._phi_of_points(e, u, v, y)
-            normal = np.column_stack([l0, l1]) / np.maximum(np.hypot(l0, l1), 1e-300)[:, None]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                # tol / r, with r the pixel distance from y to the epipole (0 at infinity)
-                ratio = (self.tol / self._s) * abs(e[2]) / np.hypot(e[0] - (y[:, 0] - self._c[0]) / self._s * e[2],
-                                                                    e[1] - (y[:, 1] - self._c[1]) / self._s * e[2])
-            ratio = np.where(np.isfinite(ratio), ratio, np.inf)
-            everywhere = ratio >= 1 - 1e-9
-            tau = self.tol / np.sqrt(np.maximum(1.0 - ratio**2, 1e-18)) * (1 + 1e-9) + 1e-9
-            tau = np.where(everywhere, 0.0, tau)
-            lo, _ = self._phi_of_points(e, u, v, y - tau[:, None] * normal)
-            hi, _ = self._phi_of_points(e, u, v, y + tau[:, None] * normal)
-            # the arc from lo to hi (mod pi) must contain phi_y; otherwise it is the other one
-            width = np.mod(hi - lo, np.pi)
-            swap = np.mod(phi_y - lo, np.pi) > width
-            lo, width = np.where(swap, hi, lo), np.where(swap, np.pi - width, width)
-            lo = np.where(everywhere, 0.0, lo)
-            width = np.where(everywhere, np.pi, width)
-            t_idx, t_bucket = _spread(lo, lo + width, edges)
+            lo, width = _kernels.pencil_intervals(e, u, v, self._c[0], self._c[1], self._s, self.tol, y)
+            t_idx, t_bucket = _kernels.spread(lo, lo + width, edges)
             # one direction per bucket: the mean direction of its lines (doubled-angle average)
             n_b = len(edges) - 1
             q_bucket = np.clip(np.searchsorted(edges, q_phi, side="right") - 1, 0, n_b - 1)
@@ -244,26 +213,3 @@ class CandidateIndex:
         stop = np.searchsorted(key_t, qb + (q_hi / span + 0.5), side="right")
         keep = stop > start
         return q_sorted[keep], start[keep], stop[keep], t_sorted
-
-
-def _spread(lo: np.ndarray, hi: np.ndarray, edges: np.ndarray):
-    """Assign each interval ``[lo, hi]`` (angles, ``hi`` may exceed pi) to every bucket it overlaps.
-
-    Returns ``(item, bucket)`` index arrays, each pair once. Intervals that
-    wrap past pi are split in two.
-    """
-    n_b = len(edges) - 1
-    hi = np.minimum(hi, lo + np.pi)
-    k0 = np.clip(np.searchsorted(edges, lo, side="right") - 1, 0, n_b - 1)
-    k1 = np.clip(np.searchsorted(edges, np.minimum(hi, np.pi), side="right") - 1, 0, n_b - 1)
-    items, first, last = [np.arange(len(lo))], [k0], [k1]
-    wrap = np.flatnonzero(hi > np.pi)
-    if wrap.size:  # the piece past pi continues at 0, up to (not into) the buckets already covered
-        w1 = np.clip(np.searchsorted(edges, hi[wrap] - np.pi, side="right") - 1, 0, n_b - 1)
-        items.append(wrap)
-        first.append(np.zeros(wrap.size, dtype=k0.dtype))
-        last.append(np.minimum(w1, k0[wrap] - 1))
-    item, k0, k1 = np.concatenate(items), np.concatenate(first), np.concatenate(last)
-    count = np.maximum(k1 - k0 + 1, 0)
-    offsets = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
-    return np.repeat(item, count), np.repeat(k0, count) + offsets
