@@ -168,8 +168,7 @@ class CandidateIndex:
         pencil = self._pencil()
         y = self.points2
         if pencil is None:  # pure rotation: every segment is a point; one bucket, rho along x
-            q_phi = np.zeros(q_ok.size)
-            edges = np.array([0.0, np.pi])
+            q_sorted, qb = q_ok, np.zeros(q_ok.size, dtype=np.intp)
             t_idx, t_bucket = np.arange(n2), np.zeros(n2, dtype=np.intp)
             directions = np.array([[1.0, 0.0]])
         else:
@@ -180,21 +179,20 @@ class CandidateIndex:
                                   line[:, 0] * self._c[0] + line[:, 1] * self._c[1] + line[:, 2]])
             q_phi = np.mod(np.arctan2(ln @ v, ln @ u), np.pi)
             q_phi[~np.any(line != 0, axis=1)] = 0.0  # undefined line: the point is the epipole itself
-            n_buckets = max(1, int(np.ceil(q_ok.size / bucket_size)))
-            cuts = np.sort(q_phi)[(np.arange(1, n_buckets) * q_ok.size) // n_buckets]
-            edges = np.concatenate([[0.0], cuts, [np.pi]])
-            # keypoints: the interval of pencil angles of lines within tol of them
+            # the queries in pencil order; the buckets are runs of about bucket_size of them
+            order = np.argsort(q_phi)
+            q_sorted, q_phi, line = q_ok[order], q_phi[order], line[order]
+            n_b = max(1, int(np.ceil(q_ok.size / bucket_size)))
+            edges = np.concatenate([[0.0], q_phi[(np.arange(1, n_b) * q_ok.size) // n_b], [np.pi]])
+            qb = np.clip(np.searchsorted(edges, q_phi, side="right") - 1, 0, n_b - 1)
+            # keypoints: the interval of pencil angles of lines within tol of them, and its buckets
             lo, width = _kernels.pencil_intervals(e, u, v, self._c[0], self._c[1], self._s, self.tol, y)
             t_idx, t_bucket = _kernels.spread(lo, lo + width, edges)
-            # one direction per bucket: the mean direction of its lines (doubled-angle average)
-            n_b = len(edges) - 1
-            q_bucket = np.clip(np.searchsorted(edges, q_phi, side="right") - 1, 0, n_b - 1)
-            ang2 = 2 * np.arctan2(line[:, 0], -line[:, 1])  # direction (-b, a) of each line
-            half = 0.5 * np.arctan2(np.bincount(q_bucket, np.sin(ang2), n_b), np.bincount(q_bucket, np.cos(ang2), n_b))
+            # one direction per bucket: the mean direction of its lines, averaged as doubled angles
+            # (the direction (-b, a) of a unit line (a, b, c), doubled, is (b^2 - a^2, -2ab))
+            a, b = line[:, 0], line[:, 1]
+            half = 0.5 * np.arctan2(np.bincount(qb, -2 * a * b, n_b), np.bincount(qb, b * b - a * a, n_b))
             directions = np.column_stack([np.cos(half), np.sin(half)])
-        n_b = len(edges) - 1
-        if pencil is None:
-            q_bucket = np.zeros(q_ok.size, dtype=np.intp)
         # rho: position along the bucket direction, scaled into [0, 1) so that (bucket + rho) sorts
         span = 2.0 * (self._s + 2 * self.tol + 1.0)
 
@@ -204,12 +202,8 @@ class CandidateIndex:
         key_t = t_bucket + (rho(y[t_idx], t_bucket) / span + 0.5)
         order_t = np.argsort(key_t)
         key_t, t_sorted = key_t[order_t], t_idx[order_t]
-
-        r1, r2 = rho(self._P[q_ok], q_bucket), rho(self._Q[q_ok], q_bucket)
-        q_lo, q_hi = np.minimum(r1, r2) - self.tol, np.maximum(r1, r2) + self.tol
-        order_q = np.argsort(q_bucket + ((q_lo + q_hi) / (4 * span) + 0.5))  # by bucket, then by mid-interval
-        q_sorted, qb, q_lo, q_hi = q_ok[order_q], q_bucket[order_q], q_lo[order_q], q_hi[order_q]
-        start = np.searchsorted(key_t, qb + (q_lo / span + 0.5), side="left")
-        stop = np.searchsorted(key_t, qb + (q_hi / span + 0.5), side="right")
+        r1, r2 = rho(self._P[q_sorted], qb), rho(self._Q[q_sorted], qb)
+        start = np.searchsorted(key_t, qb + ((np.minimum(r1, r2) - self.tol) / span + 0.5), side="left")
+        stop = np.searchsorted(key_t, qb + ((np.maximum(r1, r2) + self.tol) / span + 0.5), side="right")
         keep = stop > start
         return q_sorted[keep], start[keep], stop[keep], t_sorted
