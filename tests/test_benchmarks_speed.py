@@ -8,6 +8,7 @@ import importlib.util
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 SCRIPT = Path(__file__).resolve().parent.parent / "benchmarks" / "speed.py"
@@ -60,17 +61,37 @@ def test_tiny_run_writes_markdown_and_json(speed, tiny_run):
 
 
 def test_targets_are_computed_from_the_numbers(speed):
-    def size(seg_m, seg_k, line_m, line_k):
-        med = {"bf_knn": 2.0, "segment_match": seg_m, "segment_knn": seg_k, "line_match": line_m, "line_knn": line_k}
-        return {"median_s": med, "x_faster_than_bf": {k: 2.0 / v for k, v in med.items()}}
+    def size(seg_m, seg_k, line_m, line_k, rounds=15):
+        """Per-round times: the given value, times a round factor shared by every method (machine load)."""
+        load = 1 + 0.5 * np.sin(np.arange(rounds))
+        base = {"bf_knn": 2.0, "segment_match": seg_m, "segment_knn": seg_k, "line_match": line_m, "line_knn": line_k}
+        times = {k: [v * f for f in load] for k, v in base.items()}
+        med = {k: float(np.median(v)) for k, v in times.items()}
+        return {"median_s": med, "times_s": times, "x_faster_than_bf": {k: med["bf_knn"] / v for k, v in med.items()}}
 
     poses = {"fast": {"sizes": {"10000": size(0.05, 0.08, 0.1, 0.1)}},
              "slow": {"sizes": {"10000": size(0.2, 0.08, 0.1, 0.1)}},
              "none": {"sizes": {"5000": size(0.05, 0.05, 0.1, 0.1)}}}
     t = speed.targets(poses)
     assert t["fast"]["met"] and t["fast"]["segment_match_x"] == pytest.approx(40.0)
+    # the shared load cancels in the per-round ratio: exactly 2 and 1.25, with a zero-width interval
+    assert t["fast"]["segment_match_vs_line"] == pytest.approx((2.0, 2.0, 2.0))
+    assert t["fast"]["segment_knn_vs_line"] == pytest.approx((1.25, 1.25, 1.25))
     assert not t["slow"]["met_20x"] and not t["slow"]["met_faster_than_line"] and not t["slow"]["met"]
     assert t["none"] is None
+
+
+def test_faster_than_line_needs_the_whole_interval_above_one(speed):
+    rng = np.random.default_rng(0)
+    seg = np.full(15, 0.05)
+    noisy = seg * rng.choice([0.8, 1.3], 15)  # sometimes faster, sometimes slower than the segment
+    median, low, high = speed.ratio_interval(noisy, seg)
+    assert low < 1 < high and low <= median <= high
+    times = {"bf_knn": [2.0] * 15, "segment_match": seg, "line_match": noisy, "segment_knn": seg, "line_knn": 2 * seg}
+    s = {"median_s": {k: float(np.median(v)) for k, v in times.items()}, "times_s": times}
+    s["x_faster_than_bf"] = {k: 2.0 / v for k, v in s["median_s"].items()}
+    t = speed.targets({"p": {"sizes": {"10000": s}}})["p"]
+    assert t["met_20x"] and not t["met_faster_than_line"] and not t["met"]
 
 
 def test_bad_arguments_exit(speed):
