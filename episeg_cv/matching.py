@@ -123,9 +123,11 @@ class _Distances:
         self.norm = norm
         self.code = _kernels.NORM_CODES[norm]
         self.raw1, self.raw2 = d1, d2
-        dtype = np.uint8 if norm == "hamming" else np.float32
-        self.a = np.ascontiguousarray(d1, dtype=dtype)
-        self.b = np.ascontiguousarray(d2, dtype=dtype)
+        if norm == "hamming":
+            self.a, self.b = _kernels.as_words(d1), _kernels.as_words(d2)
+        else:
+            self.a = np.ascontiguousarray(d1, dtype=np.float32)
+            self.b = np.ascontiguousarray(d2, dtype=np.float32)
 
     def paired(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
         """``(K,)`` scores of the pairs ``(i[k], j[k])``."""
