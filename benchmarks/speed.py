@@ -499,7 +499,7 @@ def main(argv=None) -> int:
     for pose, t in res["targets"].items():
         if t is not None:
             print(f"{pose}: segment match {t['segment_match_x']:.1f}x, knnMatch {t['segment_knn_x']:.1f}x faster than "
-                  f"BF; line/segment {t['segment_match_vs_line']:.2f} / {t['segment_knn_vs_line']:.2f}; "
+                  f"BF; line/segment {_fmt_ci(t['segment_match_vs_line'])} / {_fmt_ci(t['segment_knn_vs_line'])}; "
                   f"target {'met' if t['met'] else 'not met'}")
     return 0
 
