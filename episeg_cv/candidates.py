@@ -22,10 +22,11 @@ is then applied to each keypoint of the slice, in compiled code
 The line and the segment use the same index; the segment's shorter ``rho``
 intervals give shorter slices, so it does less work.
 
-The pencil angle is built from an orthonormal basis of the lines through the (unit) homogeneous epipole, so an epipole at
-infinity (``t_3 = 0``) or very far needs no special case. For pure rotation
-(``t = 0``) there is no pencil; every segment is a point and the index falls
-back to one bucket with ``rho`` along ``x``.
+The pencil angle is built from an orthonormal basis of the lines through the
+(unit) homogeneous epipole, so an epipole at infinity (``t_3 = 0``) or very
+far needs no special case. For pure rotation (``t = 0``) there is no pencil;
+every segment is a point and the index falls back to one bucket with ``rho``
+along ``x``.
 """
 
 from __future__ import annotations
