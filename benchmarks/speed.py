@@ -16,6 +16,9 @@ At n = 10k (the issue's target) there are at least 15 rounds, and the segment is
 with the line round by round: the median of the per-round ratios, with a paired bootstrap
 95 % interval.
 
+After the SIFT tables, the first pose is also matched with ORB (binary descriptors,
+``NORM_HAMMING``) at the largest size up to 10k, and ``filter`` is timed on 100k matches.
+
 ``--quick`` runs one pose and n = 2k, 5k only.
 
 Writes ``speed.md`` (tables and the issue's target, evaluated from the numbers) and
@@ -255,6 +258,28 @@ def run_filter(repeats: int, image_size, pose: str, n: int = TARGET_N, n_matches
             "times_s": times, "median_s": med}
 
 
+def run_binary(repeats: int, image_size, pose: str, n: int = TARGET_N) -> dict:
+    """ORB (binary descriptors, NORM_HAMMING): BFMatcher against the segment and the line, at ``n`` keypoints."""
+    pair = setup(pose, image_size)[0]
+    orb = cv2.ORB_create(nfeatures=n)
+    (kp1, d1), (kp2, d2) = (orb.detectAndCompute(im, None) for im in (pair.image1, pair.image2))
+    bf = cv2.BFMatcher(cv2.NORM_HAMMING)
+    methods = {"BFMatcher knnMatch(k=2) (reference)": lambda: bf.knnMatch(d1, d2, k=2)}
+    for c in ("segment", "line"):
+        m = SegmentMatcher(pair.geometry, cv2.NORM_HAMMING, constraint=c, tol=TOL)
+        methods[f"SegmentMatcher {c}: match"] = lambda m=m: m.match(d1, d2, kp1, kp2)
+        methods[f"SegmentMatcher {c}: knnMatch(k=2)"] = lambda m=m: m.knnMatch(d1, d2, kp1, kp2, k=2)
+    times, outputs = time_interleaved(methods, max(repeats, TARGET_REPEATS) if n == TARGET_N else repeats)
+    med = {k: float(np.median(v)) for k, v in times.items()}
+    bf_t = med["BFMatcher knnMatch(k=2) (reference)"]
+    line_vs_segment = {what: ratio_interval(times[f"SegmentMatcher line: {what}"], times[f"SegmentMatcher segment: {what}"])
+                       for what in ("match", "knnMatch(k=2)")}
+    progress(f"ORB n={n}: " + ", ".join(f"{k} {bf_t / v:.1f}x" for k, v in med.items()))
+    return {"pose": pose, "n1": len(kp1), "n2": len(kp2), "times_s": times, "median_s": med,
+            "x_faster_than_bf": {k: bf_t / v for k, v in med.items()}, "output_size": outputs,
+            "line_vs_segment": line_vs_segment}
+
+
 def targets(poses: dict) -> dict:
     """The issue's target at n = 10k, evaluated from the medians of each pose."""
     out = {}
@@ -411,6 +436,19 @@ def write_markdown(path: Path, res: dict) -> None:
             L.append(f"| {label} | " + " | ".join(str(s["output_size"][k]) for s in sizes) + " |")
         L.append("")
 
+    b = res["binary"]
+    L.append(f"## Binary descriptors: ORB, pose `{b['pose']}`\n")
+    L.append(f"`cv2.ORB_create(nfeatures=n)` on the same renders: {b['n1']} / {b['n2']} keypoints; "
+             "`cv2.NORM_HAMMING` everywhere. Median of the interleaved rounds; the line / segment figure is the "
+             "median per-round ratio with a 95 % paired bootstrap interval, as above.\n")
+    L.append("| method | x faster than BFMatcher | median (ms) | output size |")
+    L.append("|---|---|---|---|")
+    for k, v in b["median_s"].items():
+        L.append(f"| {k} | {_fmt_x(b['x_faster_than_bf'][k])} | {_fmt_ms(v)} | {b['output_size'][k]} |")
+    L.append("")
+    L.append("Line / segment time: " + ", ".join(f"{what} {_fmt_ci(v)}" for what, v in b["line_vs_segment"].items())
+             + ".\n")
+
     f = res["filter"]
     L.append(f"## `filter` on {f['matches']:,} matches\n")
     L.append(f"{f['matches']:,} random index pairs between the {f['n1']} / {f['n2']} strongest keypoints of the "
@@ -471,6 +509,7 @@ def main(argv=None) -> int:
     progress(f"{command}: poses {', '.join(poses)}; sizes {', '.join(map(str, sizes))}; repeats {args.repeats}")
     results = {name: run_pose(name, sizes, args.repeats, args.image_size) for name in poses}
     filt = run_filter(args.repeats, args.image_size, poses[0], n=min(TARGET_N, max(sizes)))
+    binary = run_binary(args.repeats, args.image_size, poses[0], n=min(TARGET_N, max(sizes)))
     blas = [{k: i.get(k) for k in ("internal_api", "num_threads", "version")} for i in threadpool_info()
             if i.get("user_api") == "blas"]
     res = {
@@ -487,6 +526,7 @@ def main(argv=None) -> int:
         "poses": results,
         "targets": None,
         "filter": filt,
+        "binary": binary,
         "wall_time_s": None,
     }
     res["targets"] = targets(results)

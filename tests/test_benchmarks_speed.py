@@ -52,12 +52,17 @@ def test_tiny_run_writes_markdown_and_json(speed, tiny_run):
     assert res["targets"] == {"forward": None}  # no 10k size in this run
     assert all(t > 0 for t in res["filter"]["median_s"].values())
     assert res["filter"]["matches"] == speed.FILTER_MATCHES
+    b = res["binary"]
+    assert b["n1"] > 0 and b["n2"] > 0 and all(t > 0 for t in b["median_s"].values())
+    assert b["output_size"]["BFMatcher knnMatch(k=2) (reference)"] > 0
+    assert set(b["line_vs_segment"]) == {"match", "knnMatch(k=2)"}
 
     md = (out / "speed_quick.md").read_text()
     assert res["command"] in md
     assert "## Pose `forward`" in md and "| method | n = 150 | n = 300 | exponent |" in md
     assert "Not evaluated" in md
     assert "filter` on 100,000 matches" in md
+    assert "## Binary descriptors: ORB" in md
 
 
 def test_targets_are_computed_from_the_numbers(speed):
