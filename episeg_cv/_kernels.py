@@ -206,6 +206,49 @@ def nearest_excluding(A, B, qi, tj, exclude, norm):
 
 
 # -- building the index -----------------------------------------------------------------
+@nb.njit(cache=True, nogil=True)
+def query_frames(P, Q, line, is_line):
+    """``geo (N, 7)`` (see the module docstring) for segments ``P -> Q (N, 2)`` and unit lines ``(N, 3)``.
+
+    The segment's own unit normal and offset, or for the line constraint the line's; a
+    zero-length segment (a point) gets the direction ``(1, 0)``.
+    """
+    n = P.shape[0]
+    geo = np.empty((n, 7))
+    for q in range(n):
+        D0 = Q[q, 0] - P[q, 0]
+        D1 = Q[q, 1] - P[q, 1]
+        length = np.hypot(D0, D1)
+        d0, d1 = (D0 / length, D1 / length) if length > 0 else (1.0, 0.0)
+        if is_line:
+            n0, n1, off = line[q, 0], line[q, 1], -line[q, 2]
+        else:
+            n0, n1 = -d1, d0
+            off = n0 * P[q, 0] + n1 * P[q, 1]
+        geo[q, 0], geo[q, 1], geo[q, 2] = n0, n1, off
+        geo[q, 3], geo[q, 4] = d0, d1
+        geo[q, 5] = d0 * P[q, 0] + d1 * P[q, 1] + 0.5 * length
+        geo[q, 6] = 0.5 * length
+    return geo
+
+
+@nb.njit(cache=True, nogil=True)
+def slice_bounds(key_t, q_sorted, bucket, P, Q, directions, c0, c1, span, tol):
+    """``(start, stop)`` per query: the keys ``key_t`` (sorted ``bucket + rho / span + 1/2`` of the
+    keypoints) within ``tol`` of the ``rho`` interval of segment ``P[q] -> Q[q]``, ``q = q_sorted[r]``,
+    in bucket ``bucket[r]``; ``rho`` is the projection of ``x - c`` on the bucket's direction."""
+    n = q_sorted.shape[0]
+    start = np.empty(n, dtype=np.int64)
+    stop = np.empty(n, dtype=np.int64)
+    for r in range(n):
+        q, b = q_sorted[r], bucket[r]
+        r1 = (P[q, 0] - c0) * directions[b, 0] + (P[q, 1] - c1) * directions[b, 1]
+        r2 = (Q[q, 0] - c0) * directions[b, 0] + (Q[q, 1] - c1) * directions[b, 1]
+        start[r] = np.searchsorted(key_t, b + ((min(r1, r2) - tol) / span + 0.5), side="left")
+        stop[r] = np.searchsorted(key_t, b + ((max(r1, r2) + tol) / span + 0.5), side="right")
+    return start, stop
+
+
 @nb.njit(inline="always")
 def _pencil_angle(e, u, v, c0, c1, s, x0, x1):
     """Angle in ``[0, pi)`` of the line through the epipole ``e`` and pixel ``(x0, x1)``, in the pencil

@@ -102,26 +102,14 @@ class CandidateIndex:
         self.segments: EpipolarSegments = geometry.segments(self.points1, depth_range, margin=self.tol)
         seg = self.segments
         if constraint == "segment":
-            self._P, self._Q, self._ok = seg.start, seg.end, seg.valid.copy()
+            self._P, self._Q, self._ok = seg.start, seg.end, seg.valid
         else:
             self._P, self._Q = seg.line_start, seg.line_end
             self._ok = np.all(np.isfinite(seg.line_start), axis=1)
-        self._P = np.where(self._ok[:, None], self._P, 0.0)
-        self._Q = np.where(self._ok[:, None], self._Q, 0.0)
-        self._line = np.where(np.isfinite(seg.line), seg.line, 0.0)
-        # a local frame per query: unit normal n and direction d of its segment (or line)
-        D = self._Q - self._P
-        length = np.hypot(D[:, 0], D[:, 1])
-        d = np.where(length[:, None] > 0, D / np.where(length > 0, length, 1.0)[:, None], [1.0, 0.0])
-        n = np.column_stack([-d[:, 1], d[:, 0]])
-        if constraint == "line":
-            n, off_n = self._line[:, :2], -self._line[:, 2]
-        else:
-            off_n = (n * self._P).sum(1)
-        # the kernels' per-query parameters (see episeg_cv._kernels): across = n.y - off_n, and
-        # along = |d.y - mid| - half, so that the distance to the segment is hypot(across, max(along, 0))
-        self._geo = np.ascontiguousarray(np.column_stack(
-            [n, off_n, d, (d * self._P).sum(1) + 0.5 * length, 0.5 * length]), dtype=np.float64)
+        self._P, self._Q = np.ascontiguousarray(self._P), np.ascontiguousarray(self._Q)
+        self._line = np.ascontiguousarray(np.where(np.isfinite(seg.line), seg.line, 0.0))
+        # the kernels' per-query frame (rows of queries without a segment are never read)
+        self._geo = _kernels.query_frames(self._P, self._Q, self._line, constraint == "line")
         self._tol2 = self.tol * self.tol * (1 + 1e-9) + 1e-12
         #: Query ``q_sorted[r]`` is compared with the keypoints ``t_sorted[q_start[r]:q_stop[r]]``.
         self.q_sorted, self.q_start, self.q_stop, self.t_sorted = self._build(max(int(bucket_size), 1))
@@ -151,13 +139,13 @@ class CandidateIndex:
         self._s = float(np.hypot(w, h))
         b = self.geometry.epipole_homogeneous
         e = np.array([(b[0] - self._c[0] * b[2]) / self._s, (b[1] - self._c[1] * b[2]) / self._s, b[2]])
-        ne = np.linalg.norm(e)
+        ne = float(np.sqrt(e @ e))
         if ne == 0:
             return None
         e = e / ne
-        u = np.cross(e, np.eye(3)[np.argmin(np.abs(e))])
-        u /= np.linalg.norm(u)
-        return e, u, np.cross(e, u)
+        u = _cross(e, np.eye(3)[np.argmin(np.abs(e))])
+        u /= np.sqrt(u @ u)
+        return e, u, _cross(e, u)
 
     def _build(self, bucket_size: int):
         """``(q_sorted, q_start, q_stop, t_sorted)``: the slices of :attr:`t_sorted` to scan per query."""
@@ -203,8 +191,12 @@ class CandidateIndex:
         key_t = t_bucket + (rho(y[t_idx], t_bucket) / span + 0.5)
         order_t = np.argsort(key_t)
         key_t, t_sorted = key_t[order_t], t_idx[order_t]
-        r1, r2 = rho(self._P[q_sorted], qb), rho(self._Q[q_sorted], qb)
-        start = np.searchsorted(key_t, qb + ((np.minimum(r1, r2) - self.tol) / span + 0.5), side="left")
-        stop = np.searchsorted(key_t, qb + ((np.maximum(r1, r2) + self.tol) / span + 0.5), side="right")
+        start, stop = _kernels.slice_bounds(key_t, q_sorted, qb, self._P, self._Q, directions, self._c[0],
+                                            self._c[1], span, self.tol)
         keep = stop > start
         return q_sorted[keep], start[keep], stop[keep], t_sorted
+
+
+def _cross(a, b):
+    """Cross product of two 3-vectors (``np.cross`` costs ~50 us of overhead on them)."""
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
