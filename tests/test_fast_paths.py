@@ -20,7 +20,8 @@ import cv2
 import numpy as np
 import pytest
 
-from episeg_cv import SegmentMatcher, TwoViewGeometry, filter_pairs, guided_matches, match_descriptors
+from episeg_cv import (SegmentMatcher, TwoViewGeometry, filter_pairs, guided_matches, knn_descriptors,
+                       match_descriptors)
 from episeg_cv.matching import _Distances, _exact, check_descriptors
 
 
@@ -230,7 +231,6 @@ def test_knn_ties_go_to_the_smaller_index():
     p2 = np.array([[10.0, 50.0], [40.0, 50.0], [20.0, 50.0]])  # all on both segments (row y = 50, x < 60)
     d1 = np.array([[1, 0, 0, 0], [1, 0, 0, 0]], dtype=np.float32)
     d2 = np.array([[0, 0, 0, 0], [1, 0, 0, 1], [1, 0, 0, 1]], dtype=np.float32)  # 1 and 2 tie for both queries
-    from episeg_cv import knn_descriptors
     res = knn_descriptors(d1, d2, p1, p2, g, k=3)
     assert res.indices.tolist() == [[0, 1, 2], [0, 1, 2]]
     assert res.column_best.tolist() == [0, 0, 0]
