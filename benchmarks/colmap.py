@@ -152,6 +152,7 @@ def run_pycolmap(paths, views, work: Path, max_features: int) -> dict:
 def run_ours(paths, work: Path, tag: str, constraint: str, depth_range: str, max_features: int,
              workers: int = 1, scheduler=None, cache_dir=None, triangulate: bool = True, ratio=None) -> dict:
     from episeg_cv import colmap
+    from episeg_cv.features import PRESETS
 
     work.mkdir(parents=True, exist_ok=True)
     database = work / f"{tag}.db"
@@ -160,7 +161,8 @@ def run_ours(paths, work: Path, tag: str, constraint: str, depth_range: str, max
     t0 = time.perf_counter()
     report = colmap.match_model(paths["model"], paths["images"], database, constraint=constraint,
                                 depth_range=depth_range, workers=workers, scheduler=scheduler,
-                                detector="sift", max_features=max_features, overwrite=True, cache_dir=cache,
+                                features=PRESETS["colmap"].replace(max_features=max_features), overwrite=True,
+                                cache_dir=cache,
                                 log=warnings.append, **({} if ratio is None else {"ratio": ratio}))
     t1 = time.perf_counter()
     rec = None
@@ -400,6 +402,7 @@ def child_main(folder: str, method: str, workers: int) -> int:
     parent, so in a child of a large process it holds the parent's size.
     """
     from episeg_cv import colmap
+    from episeg_cv.features import PRESETS
 
     _pycolmap()
     paths = {"images": Path(folder) / "images", "model": Path(folder) / "model"}
@@ -414,7 +417,8 @@ def child_main(folder: str, method: str, workers: int) -> int:
             n_pairs = len(views) * (len(views) - 1) // 2
         else:
             report = colmap.match_model(paths["model"], paths["images"], work / "db.db", constraint="segment",
-                                        depth_range="auto", workers=workers, max_features=MAX_FEATURES,
+                                        depth_range="auto", workers=workers,
+                                        features=PRESETS["colmap"].replace(max_features=MAX_FEATURES),
                                         cache_dir=work / "features", overwrite=True, log=lambda m: None)
             n_pairs = report.n_pairs_done
     seconds = time.perf_counter() - t0
@@ -834,7 +838,7 @@ def main(argv=None) -> int:
     finally:
         if not args.keep:
             shutil.rmtree(work, ignore_errors=True)
-    from episeg_cv.matching import DEFAULT_RATIO
+    from episeg_cv import AcceptRule
 
     end = {"git_commit": machine_metadata()["git_commit"], "episeg_cv_uncommitted_changes": package_dirty()}
     if (end["git_commit"], end["episeg_cv_uncommitted_changes"]) != (meta["git_commit"],
@@ -846,7 +850,7 @@ def main(argv=None) -> int:
     res = {"command": command, "machine": meta, "load_average": [load0, os.getloadavg()[0]],
            "config": {**cfg, "image_size": list(cfg["image_size"]), "max_features": MAX_FEATURES,
                       "accuracy": ACCURACY, "statistic": "median",
-                      "ratio": DEFAULT_RATIO},
+                      "ratio": AcceptRule().ratio},
            **body, "wall_time_s": time.perf_counter() - t0}
     args.out.mkdir(parents=True, exist_ok=True)
     stem = "colmap_quick" if args.quick else "colmap"  # --quick never overwrites the committed full run

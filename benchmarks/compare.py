@@ -1,6 +1,6 @@
 """Segment vs line: precision, recall and surviving outliers on synthetic renders and Motorcycle.
 
-Protocol: ``shared/design/benchmark.md`` (sections 1-4 and 6). All methods run on
+Protocol: ``docs/benchmarks.md``. All methods run on
 the same SIFT keypoints and descriptors of each pair:
 
 1. ``cv2.BFMatcher`` + Lowe ratio;
@@ -36,7 +36,9 @@ from _common import machine_metadata  # noqa: E402
 import episeg_cv  # noqa: E402
 from episeg_cv import datasets, filter_pairs, guided_matches, scenes  # noqa: E402
 from episeg_cv.drawing import draw_segment_figure, save_image  # noqa: E402
-from episeg_cv.matching import DEFAULT_PAD, DEFAULT_RATIO  # noqa: E402
+from episeg_cv import AcceptRule  # noqa: E402
+
+DEFAULT_RATIO, DEFAULT_PAD = AcceptRule().ratio, AcceptRule().pad  # the library's defaults
 
 RATIOS = np.round(np.linspace(0.30, 1.00, 71), 2)
 #: Scenes: (name, pose or "motorcycle", pixel tolerance). The noisy pose is run twice: with the

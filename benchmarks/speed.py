@@ -47,7 +47,9 @@ from _common import machine_metadata, package_dirty  # noqa: E402
 
 from episeg_cv import CandidateIndex, SegmentMatcher, filter_pairs, match_descriptors  # noqa: E402
 from episeg_cv import scenes  # noqa: E402
-from episeg_cv.matching import DEFAULT_PAD, DEFAULT_RATIO  # noqa: E402
+from episeg_cv import AcceptRule  # noqa: E402
+
+DEFAULT_RATIO, DEFAULT_PAD = AcceptRule().ratio, AcceptRule().pad  # the library's defaults
 
 RESULTS = Path(__file__).resolve().parent / "results"
 SCRIPT = "benchmarks/speed.py"

@@ -46,7 +46,7 @@ CONVENTIONS = {
     "centre": ("cx = cy = 50 (the paper's K as printed, OpenCV pixel centres)", 50.0),
 }
 # Source: the paper's Table 1, "REDUCED SEARCH SPACE FOR EACH IMAGE PAIR"
-# (shared/paper/segmenting_epipolar_line.tex).
+# (S. Li, Q. Cai, Y. Wu, "Segmenting Epipolar Line", Table 1).
 PAPER = {"a": 31.07, "b": 42.92, "c": 66.67, "d": 50.50}
 
 

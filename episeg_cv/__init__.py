@@ -3,36 +3,45 @@
 Pose convention: ``X2 = R @ X1 + t``. Pixel centres at integer coordinates (OpenCV).
 Start with :class:`TwoViewGeometry` and :class:`SegmentMatcher`.
 
-Modules, in the direction the data flows: ``geometry`` (segments) ->
-``candidates`` (spatial index) -> ``matching`` (arrays) -> ``opencv``
-(the ``cv2.BFMatcher`` drop-in); ``collection`` -> ``colmap`` match posed
-collections into a COLMAP database (``from episeg_cv import colmap``; needs
-pycolmap); ``scenes`` and ``datasets`` make test data;
-``calib``, ``drawing`` and ``cli`` are the edges.
+The package, in the direction the data flows:
+
+- :mod:`.geometry`: the pair and its segments;
+- :mod:`.matching`: settings (:class:`SearchConfig`, :class:`AcceptRule`),
+  the candidate index, distances, guided matching and filtering on arrays;
+- :mod:`.opencv`: :class:`SegmentMatcher`, the ``cv2.BFMatcher`` drop-in;
+- :mod:`.features`, :mod:`.distortion`, :mod:`.io` (calibration and matches
+  files), :mod:`.evaluation` (ground truth), :mod:`.drawing`: the edges;
+- :mod:`.scenes` and :mod:`.datasets`: synthetic and real test data;
+- :mod:`.colmap`: posed collections into a COLMAP database
+  (``from episeg_cv import colmap``; needs pycolmap);
+- :mod:`.cli`: the ``episeg`` command.
 """
 
-from . import datasets, scenes
-from .calib import Calibration, load_calibration, save_calibration, undistort_points
-from .candidates import CandidateIndex
-from .drawing import draw_matches, draw_points, draw_segment_figure, draw_segments, save_image
-from .geometry import EpipolarSegments, Rejection, TwoViewGeometry
-from .matching import (GuidedMatches, explain_pairs, filter_pairs, guided_matches, knn_descriptors,
-                       match_descriptors, radius_descriptors)
-from .opencv import SegmentMatcher, keypoints_to_array
-from .scenes import GroundTruth, ground_truth_matches
-
 __version__ = "0.1.0"
+
+from . import datasets, scenes  # noqa: E402
+from .distortion import undistort_points  # noqa: E402
+from .drawing import draw_matches, draw_points, draw_segment_figure, draw_segments, save_image  # noqa: E402
+from .evaluation import GroundTruth, ground_truth_matches  # noqa: E402
+from .geometry import EpipolarSegments, Rejection, TwoViewGeometry  # noqa: E402
+from .io import Calibration, load_calibration, save_calibration  # noqa: E402
+from .matching import (AcceptRule, CandidateIndex, GuidedMatches, Neighbors, SearchConfig, explain_pairs,  # noqa: E402
+                       filter_pairs, guided_matches, knn_descriptors, match_descriptors, radius_descriptors)
+from .opencv import SegmentMatcher, keypoints_to_array  # noqa: E402
 
 __all__ = [
     "TwoViewGeometry",
     "EpipolarSegments",
     "Rejection",
+    "SearchConfig",
+    "AcceptRule",
     "CandidateIndex",
     "SegmentMatcher",
     "match_descriptors",
     "guided_matches",
     "GuidedMatches",
     "knn_descriptors",
+    "Neighbors",
     "radius_descriptors",
     "filter_pairs",
     "explain_pairs",

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numbers
 
+import cv2
 import numpy as np
 
 #: Tolerance for ``R`` being a rotation: ``|R^T R - I|`` and ``|det R - 1|``.
@@ -135,3 +136,111 @@ def as_depth_range(depth_range, n: int | None, name: str = "depth_range") -> tup
     if np.any(zmin >= zmax):
         raise ValueError(f"{name} must have zmin < zmax, got {depth_range!r}")
     return zmin, zmax
+
+
+def as_positive_int(x, name: str) -> int:
+    """An integer ``>= 1`` (a bool is refused; so is a float, even a whole one)."""
+    if isinstance(x, (bool, np.bool_)) or not isinstance(x, (int, np.integer)):
+        raise TypeError(f"{name} must be an integer >= 1, got {type(x).__name__}")
+    if x < 1:
+        raise ValueError(f"{name} must be an integer >= 1, got {x}")
+    return int(x)
+
+
+def as_count(x, name: str) -> int:
+    """An integer ``>= 0``."""
+    if isinstance(x, (bool, np.bool_)) or not isinstance(x, (int, np.integer)) or x < 0:
+        raise ValueError(f"{name} must be an integer >= 0, got {x!r}")
+    return int(x)
+
+
+def as_ratio(x, name: str) -> float:
+    """A number in ``(0, 1]``."""
+    if isinstance(x, (bool, np.bool_)) or not isinstance(x, (int, float, np.integer, np.floating)) or not 0 < x <= 1:
+        raise ValueError(f"{name} must be in (0, 1], got {x!r}")
+    return float(x)
+
+
+def as_choice(x, name: str, choices: tuple) -> str:
+    """One of the strings ``choices``."""
+    if not isinstance(x, str) or x not in choices:
+        raise ValueError(f"{name} must be one of {choices}, got {x!r}")
+    return x
+
+
+# -- descriptors and keypoints --------------------------------------------------------------
+_NORMS = {cv2.NORM_L1: "l1", cv2.NORM_L2: "l2", cv2.NORM_L2SQR: "l2sqr", cv2.NORM_HAMMING: "hamming",
+          "l1": "l1", "l2": "l2", "l2sqr": "l2sqr", "hamming": "hamming"}
+
+
+def as_norm(norm, name: str = "normType") -> str:
+    """``cv2.NORM_L1/L2/L2SQR/HAMMING`` or their names -> ``"l1"``, ``"l2"``, ``"l2sqr"`` or ``"hamming"``."""
+    key = norm.lower() if isinstance(norm, str) else norm
+    if isinstance(key, (bool, np.bool_)) or key not in _NORMS:
+        raise ValueError(f"{name} must be cv2.NORM_L1, cv2.NORM_L2, cv2.NORM_L2SQR or cv2.NORM_HAMMING "
+                         f"(or 'l1', 'l2', 'l2sqr', 'hamming'), got {norm!r}")
+    return _NORMS[key]
+
+
+def as_descriptor_pair(descriptors1, descriptors2, norm: str, names=("descriptors1", "descriptors2")):
+    """Validate two descriptor arrays against each other and the norm; returns them as arrays.
+
+    ``None`` (what cv2 detectors return for no keypoints) is an empty array of the other's width.
+    float32, float64 (for L1/L2) and uint8 are accepted; both must have the same dtype and width.
+    """
+    out = []
+    for name, d in zip(names, (descriptors1, descriptors2)):
+        if d is None:
+            other = descriptors2 if name == names[0] else descriptors1
+            other = np.asarray(other) if other is not None else np.zeros((0, 0), np.float32)
+            d = np.zeros((0, other.shape[1] if other.ndim == 2 else 0), dtype=other.dtype)
+        d = np.asarray(d)
+        if d.dtype not in (np.float32, np.float64, np.uint8):
+            raise TypeError(f"{name} must be float32 or uint8 (as OpenCV's detectors give), got dtype {d.dtype}")
+        if d.size == 0:
+            d = d.reshape(0, d.shape[1] if d.ndim == 2 else 0)
+            if norm == "hamming":
+                d = d.astype(np.uint8)
+        if d.ndim != 2:
+            raise ValueError(f"{name} must have shape (N, D), got shape {d.shape}")
+        if d.dtype != np.uint8 and d.size and not _all_finite(d):
+            raise ValueError(f"{name} must be finite, got NaN or inf")
+        out.append(d)
+    d1, d2 = out
+    if d1.shape[0] and d2.shape[0]:
+        if d1.dtype != d2.dtype:
+            raise TypeError(f"{names[0]} and {names[1]} must have the same dtype, got {d1.dtype} and {d2.dtype}")
+        if d1.shape[1] != d2.shape[1]:
+            raise ValueError(f"{names[0]} and {names[1]} must have the same width, got {d1.shape[1]} and {d2.shape[1]}")
+    for name, d in zip(names, (d1, d2)):
+        if d.shape[0] and norm == "hamming" and d.dtype != np.uint8:
+            raise TypeError(f"{name}: NORM_HAMMING needs uint8 (binary) descriptors, got {d.dtype}")
+    return d1, d2
+
+
+def _all_finite(d: np.ndarray) -> bool:
+    """``np.all(np.isfinite(d))`` without an ``(N, D)`` boolean array: min and max propagate NaN, and
+    an infinity is one of them."""
+    return bool(np.isfinite(d.min()) and np.isfinite(d.max()))
+
+
+def as_points_of(points, descriptors: np.ndarray, name: str, descriptors_name: str) -> np.ndarray:
+    """``(N, 2)`` points, one per row of ``descriptors``."""
+    p = as_points(points, name)
+    if p.shape[0] != descriptors.shape[0]:
+        raise ValueError(f"{name} has {p.shape[0]} keypoints but {descriptors_name} has {descriptors.shape[0]} rows")
+    return p
+
+
+def as_index_pairs(pairs, n1: int, n2: int, names=("points1", "points2")) -> np.ndarray:
+    """``(K, 2)`` intp index pairs ``(i1, i2)``, each within its side's ``n`` keypoints."""
+    arr = np.asarray(pairs)
+    if arr.size == 0:
+        arr = np.zeros((0, 2), dtype=np.intp)
+    if arr.ndim != 2 or arr.shape[1] != 2 or not (np.issubdtype(arr.dtype, np.integer)):
+        raise ValueError(f"pairs must be a (K, 2) integer array, got shape {arr.shape} and dtype {arr.dtype}")
+    for col, n, name in ((0, n1, names[0]), (1, n2, names[1])):
+        if len(arr) and (arr[:, col].min() < 0 or arr[:, col].max() >= n):  # then find the first offender
+            bad = (arr[:, col] < 0) | (arr[:, col] >= n)
+            raise ValueError(f"match index {int(arr[bad, col][0])} out of range for {name} with {n} keypoints")
+    return arr.astype(np.intp)

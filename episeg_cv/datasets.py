@@ -6,8 +6,8 @@
   by scikit-image (``skimage.data.stereo_motorcycle``; no network), with the
   calibration in ``data/motorcycle/calib.json``.
 
-Both return an :class:`~episeg_cv.scenes.ImagePair`, whose
-:meth:`~episeg_cv.scenes.ImagePair.ground_truth` gives the true match of
+Both return an :class:`~episeg_cv.evaluation.ImagePair`, whose
+:meth:`~episeg_cv.evaluation.ImagePair.ground_truth` gives the true match of
 every keypoint.
 """
 
@@ -19,8 +19,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .geometry import TwoViewGeometry
-from .scenes import ImagePair
+from .evaluation import ImagePair
+from .io import load_calibration
 
 __all__ = ["data_dir", "load_default_pair", "load_motorcycle"]
 
@@ -49,15 +49,6 @@ def data_dir() -> Path:
     raise FileNotFoundError(f"episeg_cv data files not found in {here / '_data'} or {here.parent / 'data'}")
 
 
-def _read_calib(path: Path) -> dict:
-    return json.loads(path.read_text())
-
-
-def _geometry(calib: dict) -> TwoViewGeometry:
-    return TwoViewGeometry(calib["K1"], calib["K2"], calib["R"], calib["t"],
-                           image_size1=tuple(calib["image_size1"]), image_size2=tuple(calib["image_size2"]))
-
-
 def _read_grey(path: Path) -> np.ndarray:
     img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
     if img is None:
@@ -83,12 +74,12 @@ def load_default_pair() -> ImagePair:
     ((480, 640), 'uint8', (640, 480))
     """
     d = data_dir() / "default"
-    calib = _read_calib(d / "calib.json")
-    geom = _geometry(calib)
+    geom = load_calibration(d / "calib.json").geometry
+    case = json.loads((d / "calib.json").read_text()).get("case", "synthetic")  # (the name of the render)
     with np.load(d / "depth.npz") as z:
         depth1 = z["depth1"].astype(np.float64)
         depth2 = z["depth2"].astype(np.float64)
-    return ImagePair(f"default ({calib.get('case', 'synthetic')})", _read_grey(d / "image1.png"), _read_grey(d / "image2.png"),
+    return ImagePair(f"default ({case})", _read_grey(d / "image1.png"), _read_grey(d / "image2.png"),
                      geom, geom, depth1, depth2, None, 3.0)
 
 
@@ -121,8 +112,7 @@ def load_motorcycle() -> ImagePair:
     import skimage.data
 
     left, right, disp = skimage.data.stereo_motorcycle()
-    calib = _read_calib(data_dir() / "motorcycle" / "calib.json")
-    geom = _geometry(calib)
+    geom = load_calibration(data_dir() / "motorcycle" / "calib.json").geometry
     disp = np.asarray(disp, dtype=np.float32).copy()
     disp[~np.isfinite(disp)] = np.inf
     f = geom.K1[0, 0]

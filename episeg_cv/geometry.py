@@ -9,8 +9,8 @@ Conventions (used throughout episeg_cv)
   at integer coordinates, as for ``cv2.KeyPoint``, so an image of size
   ``(width, height)`` covers ``[-0.5, width - 0.5] x [-0.5, height - 0.5]``.
 
-The formulation (``shared/design/geometry.md``)
------------------------------------------------
+The formulation (``docs/geometry.md``)
+-----------------------------------
 For a pixel ``x1`` of image 1 and a depth ``z1`` along its ray, the homogeneous
 image in view 2 is ``w(z1) = z1 * a + b`` with ``a = K2 R K1^-1 [x1; 1]``
 (the homogeneous virtual infinity point) and ``b = K2 t`` (the homogeneous
@@ -48,7 +48,7 @@ from ._validation import (
     as_vector3,
 )
 
-__all__ = ["TwoViewGeometry", "EpipolarSegments", "Rejection"]
+__all__ = ["TwoViewGeometry", "EpipolarSegments", "Rejection", "as_geometry"]
 
 #: Relative tolerance of the strict cheirality test ``w3 > eps * (|U| + |V|)``.
 CHEIRALITY_EPS = 1e-12
@@ -113,7 +113,8 @@ def _dehomogenise(w: np.ndarray) -> np.ndarray:
         return w[:, :2] / w[:, 2:3]
 
 
-def _point_segment_distance(p, start, end):
+def point_segment_distance(p: np.ndarray, start: np.ndarray, end: np.ndarray) -> np.ndarray:
+    """(N,) distance from ``p[i]`` to the segment ``start[i] -> end[i]`` (all ``(N, 2)``, finite)."""
     d = end - start
     dd = np.einsum("ij,ij->i", d, d)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
@@ -246,7 +247,7 @@ class EpipolarSegments:
             Euclidean distance in pixels; ``inf`` where the segment is empty.
         """
         p = self._paired_points(points2)
-        return np.where(self.valid, _point_segment_distance(p, np.nan_to_num(self.start), np.nan_to_num(self.end)), np.inf)
+        return np.where(self.valid, point_segment_distance(p, np.nan_to_num(self.start), np.nan_to_num(self.end)), np.inf)
 
     def line_distance(self, points2) -> np.ndarray:
         """(N,) pixel distance from ``points2[i]`` to epipolar line ``i``; inf where undefined."""
@@ -350,12 +351,13 @@ class TwoViewGeometry:
     """
 
     def __init__(self, K1, K2, R, t, *, image_size1, image_size2):
-        self.K1 = as_camera_matrix(K1, "K1")
-        self.K2 = as_camera_matrix(K2, "K2")
-        self.R = as_rotation(R, "R")
-        self.t = as_vector3(t, "t")
-        self.image_size1 = as_image_size(image_size1, "image_size1")
-        self.image_size2 = as_image_size(image_size2, "image_size2")
+        self._set(as_camera_matrix(K1, "K1"), as_camera_matrix(K2, "K2"), as_rotation(R, "R"), as_vector3(t, "t"),
+                  as_image_size(image_size1, "image_size1"), as_image_size(image_size2, "image_size2"))
+
+    def _set(self, K1, K2, R, t, image_size1, image_size2):
+        """Store checked values and derive the rest (the one place that does, for every constructor)."""
+        self.K1, self.K2, self.R, self.t = K1, K2, R, t
+        self.image_size1, self.image_size2 = image_size1, image_size2
         for a in (self.K1, self.K2, self.R, self.t):
             a.flags.writeable = False
         #: (3, 3) the infinite homography ``K2 R K1^-1``: ``a = H [x1; 1]``.
@@ -407,9 +409,14 @@ class TwoViewGeometry:
         return cls.from_world_poses(Ks[0], Rs[0], ts[0], Ks[1], Rs[1], ts[1], image_size1=image_size1, image_size2=image_size2)
 
     def inverse(self) -> "TwoViewGeometry":
-        """The same pair with the views swapped: ``R.T``, ``-R.T @ t``, sizes and ``K`` swapped."""
-        return TwoViewGeometry(self.K2, self.K1, self.R.T, -self.R.T @ self.t,
-                               image_size1=self.image_size2, image_size2=self.image_size1)
+        """The same pair with the views swapped: ``R.T``, ``-R.T @ t``, sizes and ``K`` swapped.
+
+        Built from this geometry's checked values, with no second validation.
+        """
+        inv = TwoViewGeometry.__new__(TwoViewGeometry)
+        inv._set(self.K2, self.K1, np.ascontiguousarray(self.R.T), -self.R.T @ self.t,
+                 self.image_size2, self.image_size1)
+        return inv
 
     # -- classic quantities ----------------------------------------------------
     @property
@@ -514,6 +521,13 @@ class TwoViewGeometry:
             line = line / np.where(norm > 0, norm, np.nan)[:, None]
             p_inf = a[:, :2] / a[:, 2:3]
         return EpipolarSegments(start, end, valid, line, p_inf, self.epipole, margin, a, b.copy(), rect)
+
+
+def as_geometry(geometry, name: str = "geometry") -> TwoViewGeometry:
+    """``geometry`` itself, or ``TypeError`` naming ``name`` when it is not a :class:`TwoViewGeometry`."""
+    if not isinstance(geometry, TwoViewGeometry):
+        raise TypeError(f"{name} must be a TwoViewGeometry, got {type(geometry).__name__}")
+    return geometry
 
 
 def _rq(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

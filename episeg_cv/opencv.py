@@ -13,14 +13,16 @@ from operator import attrgetter
 import cv2
 import numpy as np
 
-from ._validation import as_depth_range, as_nonnegative, as_points
-from .candidates import check_constraint
-from .geometry import TwoViewGeometry
-from .matching import (DEFAULT_PAD, DEFAULT_RATIO, _check_k, _check_points, _exact, check_descriptors,
-                       check_norm, check_ratio,
-                       explain_pairs, filter_pairs, knn_descriptors, match_descriptors, radius_descriptors)
+from ._validation import as_index_pairs, as_nonnegative, as_norm, as_points, as_positive_int
+from .geometry import as_geometry
+from .matching import guided
+from .matching.config import AcceptRule, SearchConfig, resolve
+from .matching.filtering import explain, keep_mask
 
-__all__ = ["SegmentMatcher", "keypoints_to_array"]
+__all__ = ["SegmentMatcher", "keypoints_to_array", "pairs_of"]
+
+#: Norm names -> the ``cv2.NORM_*`` constants that ``cv2.BFMatcher`` takes.
+_CV2_NORMS = {"l1": cv2.NORM_L1, "l2": cv2.NORM_L2, "l2sqr": cv2.NORM_L2SQR, "hamming": cv2.NORM_HAMMING}
 
 
 def keypoints_to_array(keypoints, name: str = "keypoints") -> np.ndarray:
@@ -72,18 +74,17 @@ class SegmentMatcher:
         Keep only mutual nearest neighbours, each direction under its own
         constraint (the reverse with ``geometry.inverse()``). OpenCV cannot
         combine crossCheck with a mask; this can.
-    tol : float, optional
-        Pixel distance from a keypoint to the segment (not the line) within
-        which it is a candidate. Default 2.
-    depth_range : (zmin, zmax), optional
-        Bounds on the depth in camera 1, in the unit of ``t``.
-    constraint : {"segment", "line", "none"}, optional
-        ``"segment"`` (ours), ``"line"`` (plain epipolar filtering, same code
-        path) or ``"none"`` (exactly ``cv2.BFMatcher``).
-    ratio, mutual, pad
-        The acceptance rule of :meth:`match` (defaults chosen on the benchmark); see
-        :func:`episeg_cv.matching.match_descriptors`. They do not apply to
+    search : SearchConfig, optional
+        Where the candidates are: ``constraint`` (``"segment"``, ours;
+        ``"line"``, plain epipolar filtering by the same code path; ``"none"``,
+        exactly ``cv2.BFMatcher``), ``tol`` (pixels to the segment, default 2)
+        and ``depth_range`` (bounds on the depth in camera 1, unit of ``t``).
+    rule : AcceptRule, optional
+        The acceptance rule of :meth:`match`: ``ratio``, ``mutual``, ``pad``
+        (defaults chosen on the benchmark). It does not apply to
         ``constraint="none"``, which returns what ``cv2.BFMatcher.match`` does.
+    **options
+        Fields of either object as keywords (``tol=4``, ``ratio=0.8``, ...).
 
     Notes
     -----
@@ -109,45 +110,38 @@ class SegmentMatcher:
     2
     """
 
-    def __init__(self, geometry, normType=cv2.NORM_L2, crossCheck=False, *, tol=2.0,
-                 depth_range=(0.0, np.inf), constraint="segment", ratio=DEFAULT_RATIO, mutual=True,
-                 pad=DEFAULT_PAD):
-        if not isinstance(geometry, TwoViewGeometry):
-            raise TypeError(f"geometry must be a TwoViewGeometry, got {type(geometry).__name__}")
-        self.geometry = geometry
+    def __init__(self, geometry, normType=cv2.NORM_L2, crossCheck=False, *, search: SearchConfig | None = None,
+                 rule: AcceptRule | None = None, **options):
+        self.geometry = as_geometry(geometry)
         self.normType = normType
-        self._norm = check_norm(normType)
-        self.crossCheck = bool(crossCheck)
-        self.tol = as_nonnegative(tol, "tol")
-        as_depth_range(depth_range, None)  # per-point arrays are checked against N at each call
-        self.depth_range = depth_range
-        self.constraint = check_constraint(constraint)
-        self.ratio = check_ratio(ratio, "ratio")
-        self.mutual = bool(mutual)
-        if isinstance(pad, (bool, np.bool_)) or not isinstance(pad, (int, np.integer)) or pad < 0:
-            raise ValueError(f"pad must be an integer >= 0, got {pad!r}")
-        self.pad = int(pad)
+        self._norm = as_norm(normType)
+        if crossCheck:
+            options = {"cross_check": True, **options}
+        #: The :class:`~episeg_cv.SearchConfig` and :class:`~episeg_cv.AcceptRule` of every call.
+        self.search, self.rule = resolve(search, rule, options)
+
+    # the settings, as attributes (read-only: make a new matcher to change them)
+    crossCheck = property(lambda self: self.rule.cross_check, doc="Mutual nearest neighbours in both directions.")
+    tol = property(lambda self: self.search.tol, doc="Pixel tolerance of the constraint.")
+    depth_range = property(lambda self: self.search.depth_range, doc="Depth bounds in camera 1.")
+    constraint = property(lambda self: self.search.constraint, doc="'segment', 'line' or 'none'.")
+    ratio = property(lambda self: self.rule.ratio, doc="Ratio of the acceptance rule.")
+    mutual = property(lambda self: self.rule.mutual, doc="Mutual check of the acceptance rule.")
+    pad = property(lambda self: self.rule.pad, doc="Random reference keypoints of the ratio test.")
 
     def __repr__(self) -> str:
-        return (f"SegmentMatcher(normType={self.normType}, crossCheck={self.crossCheck}, tol={self.tol}, "
-                f"depth_range={self.depth_range}, constraint={self.constraint!r}, ratio={self.ratio}, "
-                f"mutual={self.mutual}, pad={self.pad})")
+        return f"SegmentMatcher(normType={self.normType}, search={self.search!r}, rule={self.rule!r})"
 
     # -- helpers ---------------------------------------------------------------------
-    def _inputs(self, queryDescriptors, trainDescriptors, queryKeypoints, trainKeypoints):
-        d1, d2 = check_descriptors(queryDescriptors, trainDescriptors, self._norm,
-                                   names=("queryDescriptors", "trainDescriptors"))
-        p1 = _check_points(keypoints_to_array(queryKeypoints, "queryKeypoints"), d1, "queryKeypoints",
-                           "queryDescriptors")
-        p2 = _check_points(keypoints_to_array(trainKeypoints, "trainKeypoints"), d2, "trainKeypoints",
-                           "trainDescriptors")
-        return d1, d2, p1, p2
-
-    def _kw(self):
-        return dict(norm=self._norm, tol=self.tol, depth_range=self.depth_range, constraint=self.constraint)
+    def _inputs(self, queryDescriptors, trainDescriptors, queryKeypoints, trainKeypoints) -> guided.MatchInputs:
+        return guided.MatchInputs.check(queryDescriptors, trainDescriptors,
+                                        keypoints_to_array(queryKeypoints, "queryKeypoints"),
+                                        keypoints_to_array(trainKeypoints, "trainKeypoints"), self._norm,
+                                        names=("queryDescriptors", "trainDescriptors", "queryKeypoints",
+                                               "trainKeypoints"))
 
     def _bf(self):
-        return cv2.BFMatcher(self.normType, self.crossCheck)
+        return cv2.BFMatcher(_CV2_NORMS[self._norm], self.crossCheck)
 
     @staticmethod
     def _cv(d):  # cv2 takes float32 or uint8 only
@@ -156,19 +150,19 @@ class SegmentMatcher:
     # -- the cv2.BFMatcher API -----------------------------------------------------------
     def match(self, queryDescriptors, trainDescriptors, queryKeypoints, trainKeypoints) -> list:
         """Accepted matches, one at most per query, as ``list[cv2.DMatch]`` (``imgIdx = 0``)."""
-        d1, d2, p1, p2 = self._inputs(queryDescriptors, trainDescriptors, queryKeypoints, trainKeypoints)
+        inp = self._inputs(queryDescriptors, trainDescriptors, queryKeypoints, trainKeypoints)
+        d1, d2 = inp.distances.raw1, inp.distances.raw2
         if len(d1) == 0 or len(d2) == 0:
             return []
         if self.constraint == "none":
             return list(self._bf().match(self._cv(d1), self._cv(d2)))
-        pairs, dist = match_descriptors(d1, d2, p1, p2, self.geometry, ratio=self.ratio, mutual=self.mutual,
-                                        pad=self.pad, cross_check=self.crossCheck, **self._kw())
-        return _to_dmatches(pairs, dist)
+        return _to_dmatches(*guided.match(inp, self.geometry, self.search, self.rule))
 
     def knnMatch(self, queryDescriptors, trainDescriptors, queryKeypoints, trainKeypoints, k) -> list:
         """The ``k`` nearest candidates of each query: one list per query, shorter when fewer exist."""
-        k = _check_k(k)
-        d1, d2, p1, p2 = self._inputs(queryDescriptors, trainDescriptors, queryKeypoints, trainKeypoints)
+        k = as_positive_int(k, "k")
+        inp = self._inputs(queryDescriptors, trainDescriptors, queryKeypoints, trainKeypoints)
+        d1, d2 = inp.distances.raw1, inp.distances.raw2
         if self.crossCheck and k != 1:
             raise ValueError(f"k must be 1 when crossCheck is True (as in cv2.BFMatcher), got {k}")
         if len(d1) == 0:
@@ -178,28 +172,30 @@ class SegmentMatcher:
         if self.constraint == "none":
             return [list(m) for m in self._bf().knnMatch(self._cv(d1), self._cv(d2), k=k)]
         if self.crossCheck:
-            pairs, dist = match_descriptors(d1, d2, p1, p2, self.geometry, ratio=1.0, mutual=False, pad=0,
-                                            cross_check=True, **self._kw())
-            return _per_query(len(d1), pairs, dist)
-        res = knn_descriptors(d1, d2, p1, p2, self.geometry, k=k, **self._kw())
-        i, col = np.nonzero(res.indices >= 0)  # row-major: by query, nearest first
-        j = res.indices[i, col]
-        return _per_query(len(d1), np.column_stack([i, j]), _exact(d1, d2, self._norm, i, j))
+            rule = AcceptRule(ratio=1.0, mutual=False, pad=0, cross_check=True)
+            return _per_query(len(d1), *guided.match(inp, self.geometry, self.search, rule))
+        return _per_query(len(d1), *guided.knn(inp, self.geometry, self.search, k).pairs())
 
     def radiusMatch(self, queryDescriptors, trainDescriptors, queryKeypoints, trainKeypoints, maxDistance) -> list:
         """All candidates within ``maxDistance`` of each query, nearest first: one list per query."""
         max_distance = as_nonnegative(maxDistance, "maxDistance")
-        d1, d2, p1, p2 = self._inputs(queryDescriptors, trainDescriptors, queryKeypoints, trainKeypoints)
+        inp = self._inputs(queryDescriptors, trainDescriptors, queryKeypoints, trainKeypoints)
+        d1, d2 = inp.distances.raw1, inp.distances.raw2
         if len(d1) == 0:
             return []
         if len(d2) == 0:
             return [[] for _ in range(len(d1))]
         if self.constraint == "none":
             return [list(m) for m in self._bf().radiusMatch(self._cv(d1), self._cv(d2), max_distance)]
-        pairs, dist = radius_descriptors(d1, d2, p1, p2, self.geometry, max_distance=max_distance, **self._kw())
-        return _per_query(len(d1), pairs, dist)
+        return _per_query(len(d1), *guided.radius(inp, self.geometry, self.search, max_distance))
 
     # -- after matching ----------------------------------------------------------------
+    def _pairs_and_points(self, matches, queryKeypoints, trainKeypoints):
+        nested, flat = _flatten(matches)
+        p1 = keypoints_to_array(queryKeypoints, "queryKeypoints")
+        p2 = keypoints_to_array(trainKeypoints, "trainKeypoints")
+        return nested, as_index_pairs(pairs_of(flat), len(p1), len(p2), ("queryKeypoints", "trainKeypoints")), p1, p2
+
     def filter(self, matches, queryKeypoints, trainKeypoints):
         """Outlier rejection: keep only the matches that satisfy the constraint.
 
@@ -213,11 +209,8 @@ class SegmentMatcher:
         -------
         The same structure, holding only the pairs that pass.
         """
-        nested, flat = _flatten(matches)
-        keep = filter_pairs(_pairs_of(flat), keypoints_to_array(queryKeypoints, "queryKeypoints"),
-                            keypoints_to_array(trainKeypoints, "trainKeypoints"), self.geometry,
-                            tol=self.tol, depth_range=self.depth_range, constraint=self.constraint)
-        return _unflatten(matches, nested, keep)
+        nested, pairs, p1, p2 = self._pairs_and_points(matches, queryKeypoints, trainKeypoints)
+        return _unflatten(matches, nested, keep_mask(pairs, p1, p2, self.geometry, self.search))
 
     def explain(self, matches, queryKeypoints, trainKeypoints):
         """Why each match passes or fails the segment constraint.
@@ -231,10 +224,8 @@ class SegmentMatcher:
             ``beyond_epipole``, ``off_line``, ``empty_segment``, ``out_of_range``.
             Those on the line but not on the segment are what the segment adds.
         """
-        _, flat = _flatten(matches)
-        return explain_pairs(_pairs_of(flat), keypoints_to_array(queryKeypoints, "queryKeypoints"),
-                             keypoints_to_array(trainKeypoints, "trainKeypoints"), self.geometry,
-                             tol=self.tol, depth_range=self.depth_range)
+        _, pairs, p1, p2 = self._pairs_and_points(matches, queryKeypoints, trainKeypoints)
+        return explain(pairs, p1, p2, self.geometry, self.search)
 
 
 def _flatten(matches):
@@ -255,7 +246,8 @@ def _flatten(matches):
 _QUERY_IDX, _TRAIN_IDX = attrgetter("queryIdx"), attrgetter("trainIdx")
 
 
-def _pairs_of(flat) -> np.ndarray:
+def pairs_of(flat) -> np.ndarray:
+    """``(K, 2)`` intp ``(queryIdx, trainIdx)`` of a flat list of ``cv2.DMatch``."""
     pairs = np.empty((len(flat), 2), dtype=np.intp)
     pairs[:, 0] = np.fromiter(map(_QUERY_IDX, flat), dtype=np.intp, count=len(flat))
     pairs[:, 1] = np.fromiter(map(_TRAIN_IDX, flat), dtype=np.intp, count=len(flat))

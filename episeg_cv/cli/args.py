@@ -1,0 +1,90 @@
+"""Argument types and the help formatter shared by every command (each rule written once)."""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+
+from .._validation import as_depth_range
+
+__all__ = ["Formatter", "positive_int", "nonneg_float", "depth", "ratio_arg", "parse_point", "depth_range_arg",
+           "add_verbosity"]
+
+
+class Formatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """Shows each option's default, except None, the False of on/off flags, and defaults the help states."""
+
+    def _get_help_string(self, action):
+        if action.default is None or action.default is False or "default:" in (action.help or ""):
+            return action.help
+        return super()._get_help_string(action)
+
+
+def _number(text: str, what: str) -> float:
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
+
+
+def positive_int(text):
+    """An integer >= 1."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if v <= 0:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return v
+
+
+def nonneg_float(text):
+    """A finite number >= 0."""
+    v = _number(text, "a number")
+    if not np.isfinite(v) or v < 0:
+        raise argparse.ArgumentTypeError(f"expected a finite number >= 0, got {text!r}")
+    return v
+
+
+def depth(text):
+    """A depth >= 0 (inf allowed)."""
+    v = _number(text, "a depth (number or inf)")
+    if np.isnan(v) or v < 0:
+        raise argparse.ArgumentTypeError(f"expected a depth >= 0, got {text!r}")
+    return v
+
+
+def ratio_arg(text):
+    """A ratio in (0, 1]."""
+    v = nonneg_float(text)
+    if not 0 < v <= 1:
+        raise argparse.ArgumentTypeError(f"expected a ratio in (0, 1], got {text!r}")
+    return v
+
+
+def parse_point(text: str) -> tuple[float, float]:
+    """``x,y`` in pixels."""
+    try:
+        x, y = (float(v) for v in text.replace(" ", "").split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"a point must be written x,y (e.g. 120.5,80), got {text!r}") from None
+    if not (np.isfinite(x) and np.isfinite(y)):
+        raise argparse.ArgumentTypeError(f"a point must be finite, got {text!r}")
+    return x, y
+
+
+def depth_range_arg(values) -> tuple[float, float]:
+    """``--depth-range ZMIN ZMAX`` (two parsed depths, or None for ``(0, inf)``), checked as a pair."""
+    if values is None:
+        return (0.0, np.inf)
+    zmin, zmax = values
+    as_depth_range((zmin, zmax), None, "--depth-range")
+    return (zmin, zmax)
+
+
+def add_verbosity(parser: argparse.ArgumentParser) -> None:
+    """``-q`` / ``--quiet`` and ``-v`` / ``--verbose``, exclusive."""
+    g = parser.add_mutually_exclusive_group()
+    g.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors")
+    g.add_argument("-v", "--verbose", action="store_true", help="more detail on stderr")

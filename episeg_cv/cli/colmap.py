@@ -1,0 +1,110 @@
+"""``episeg colmap``: match a posed collection into a COLMAP database, and optionally triangulate it."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+from ..features import PRESETS
+from ..matching import AcceptRule, SearchConfig
+from .args import Formatter, depth, nonneg_float, positive_int, ratio_arg
+from .console import PROG, Console, UserError
+
+
+def add_parser(sub, parents) -> None:
+    p = sub.add_parser("colmap", parents=parents, formatter_class=Formatter,
+                       help="match a posed collection into a COLMAP database",
+                       description="Compute features once per image (cached on disk), match every pair on its "
+                                   "epipolar segments from the known poses, and write a COLMAP database (cameras, "
+                                   "rigs, frames, images, keypoints, matches, CALIBRATED two-view geometries) that "
+                                   "'colmap point_triangulator' or pycolmap.triangulate_points uses unchanged. "
+                                   "MODEL is a COLMAP sparse model folder or a poses JSON (see "
+                                   "episeg_cv.colmap.load_poses).",
+                       epilog="examples:\n  episeg colmap sparse/0 images --database out.db --neighbors 10 "
+                              "--triangulate tri\n  episeg colmap poses.json images --database out.db --workers 2\n"
+                              "  episeg colmap sparse/0 images --database out.db --scheduler tcp://10.0.0.5:8786 "
+                              "--resume")
+    p.add_argument("model", help="COLMAP model folder (cameras, images, points3D; .bin or .txt) or poses JSON")
+    p.add_argument("image_dir", help="folder of the images, named as in the model")
+    p.add_argument("--database", required=True, metavar="DB", help="COLMAP database to write")
+    pg = p.add_mutually_exclusive_group()
+    pg.add_argument("--pairs", metavar="FILE", help="pairs file, one 'name1 name2' per line (COLMAP/hloc)")
+    pg.add_argument("--neighbors", type=positive_int, metavar="K",
+                    help="each image's K best partners by view overlap (default, without --pairs: every pair)")
+    p.add_argument("--detector", choices=("sift", "orb", "akaze"), default="sift", help="keypoint detector")
+    p.add_argument("--max-features", type=positive_int, default=PRESETS["colmap"].max_features, metavar="N",
+                   help="keypoints per image")
+    p.add_argument("--constraint", choices=("segment", "line"), default="segment",
+                   help="search the correct segment or the whole epipolar line")
+    p.add_argument("--depth-range", nargs="+", default=["auto"], metavar="SPEC",
+                   help="'auto': each image's depth range from the model's 3D points it sees; 'none': (0, inf); "
+                        "or 'ZMIN ZMAX' for every image, in the unit of the poses (default: auto)")
+    p.add_argument("--tol", type=nonneg_float, default=SearchConfig().tol, metavar="PX",
+                   help="pixel tolerance of the constraint")
+    p.add_argument("--ratio", type=ratio_arg, default=None,
+                   help=f"ratio test of the guided matcher, with its mutual check (default: the matcher's, "
+                        f"{AcceptRule().ratio})")
+    p.add_argument("--workers", type=positive_int, default=1, metavar="N", help="local worker processes")
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="Dask scheduler address, or local:N for a new LocalCluster (needs episeg_cv[dask])")
+    p.add_argument("--cache", default=None, metavar="DIR",
+                   help="feature cache folder (default: DB.features, next to the database)")
+    p.add_argument("--triangulate", default=None, metavar="OUT_DIR",
+                   help="then run pycolmap.triangulate_points and write the model to OUT_DIR")
+    rg = p.add_mutually_exclusive_group()
+    rg.add_argument("--resume", action="store_true", help="continue DB, skipping the pairs it holds")
+    rg.add_argument("--overwrite", action="store_true", help="replace an existing DB")
+    p.set_defaults(func=run)
+
+
+def colmap_depth(values):
+    """``--depth-range``: ``auto``, ``none`` or ``ZMIN ZMAX``."""
+    if len(values) == 1 and values[0] in ("auto", "none"):
+        return values[0]
+    if len(values) == 2:
+        try:
+            return (depth(values[0]), depth(values[1]))
+        except argparse.ArgumentTypeError as e:
+            raise UserError(f"--depth-range: {e}") from e
+    raise UserError(f"--depth-range takes 'auto', 'none' or ZMIN ZMAX, got {' '.join(values)!r}")
+
+
+def run(args, console: Console) -> int:
+    try:
+        import pycolmap
+    except ImportError as e:
+        raise UserError('episeg colmap needs pycolmap: pip install "episeg_cv[colmap]"') from e
+    from .. import colmap
+
+    if not console.verbose:
+        pycolmap.logging.minloglevel = 2  # COLMAP's INFO and WARNING lines only with --verbose
+    bars = {}
+
+    def progress(stage, done, total):
+        bar = bars.get(stage) or bars.setdefault(stage, console.progress(total, stage))
+        dt = time.perf_counter() - bar.t0
+        bar.step(f"{done / dt:.1f} {'images' if stage == 'features' else 'pairs'}/s" if dt > 0 else "")
+
+    search = SearchConfig(tol=args.tol, constraint=args.constraint)
+    rule = AcceptRule(**({} if args.ratio is None else {"ratio": args.ratio}))
+    features = PRESETS["colmap"].replace(detector=args.detector, max_features=args.max_features)
+    t0 = time.perf_counter()
+    try:
+        report = colmap.match_model(
+            args.model, args.image_dir, args.database, pairs=args.pairs, neighbors=args.neighbors,
+            features=features, depth_range=colmap_depth(args.depth_range), search=search, rule=rule,
+            workers=args.workers, scheduler=args.scheduler, cache_dir=args.cache, resume=args.resume,
+            overwrite=args.overwrite, progress=progress,
+            log=lambda msg: print(f"{PROG}: {msg}", file=sys.stderr, flush=True))
+    finally:
+        for bar in bars.values():
+            bar.close()
+    console.print(report.summary())
+    if args.triangulate:
+        rec = colmap.triangulate(args.database, args.model, args.image_dir, args.triangulate)
+        console.print(f"triangulated model in {args.triangulate}: {rec.num_points3D()} points, "
+                      f"mean track length {rec.compute_mean_track_length():.2f}, "
+                      f"mean reprojection error {rec.compute_mean_reprojection_error():.3f} px")
+    console.info(f"done in {time.perf_counter() - t0:.1f} s")
+    return 0

@@ -1,0 +1,58 @@
+"""The ``episeg`` parser, assembled from each command's module, and the entry point."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from .. import __version__
+from . import bench, colmap, demo, match, segments, synthetic
+from .args import Formatter, add_verbosity
+from .console import PROG, Console, UserError, one_line
+
+#: The commands, in the order ``episeg --help`` lists them.
+COMMANDS = (demo, match, segments, bench, colmap, synthetic)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The whole parser: each command module adds its own subparser."""
+    common = argparse.ArgumentParser(add_help=False)
+    add_verbosity(common)
+    parser = argparse.ArgumentParser(
+        prog=PROG, formatter_class=Formatter,
+        description="Feature matching on the correct epipolar segment, for two views with a known pose "
+                    "(X2 = R X1 + t).",
+        epilog="examples:\n  episeg demo\n  episeg match left.png right.png --calib stereo.yml --out matches.json\n"
+               "  episeg segments left.png right.png --calib calib.json --random 12\n\n"
+               "Run 'episeg COMMAND --help' for the options of each command.")
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for command in COMMANDS:
+        command.add_parser(sub, [common])
+    return parser
+
+
+def main(argv=None) -> int:
+    """Entry point of the ``episeg`` command; returns the exit code (0, 1 bad data, 2 usage).
+
+    Parameters
+    ----------
+    argv : list of str, optional
+        The arguments after ``episeg``; default ``sys.argv[1:]``.
+    """
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    console = Console(args.quiet, args.verbose)
+    try:
+        return int(args.func(args, console) or 0)
+    except (UserError, ValueError, TypeError, OSError) as exc:
+        # user errors: a missing file, a bad calibration, an unreadable image, bad values
+        print(f"{PROG}: error: {one_line(exc)}", file=sys.stderr, flush=True)
+        if args.verbose and not isinstance(exc, (UserError, FileNotFoundError)):
+            import traceback
+
+            traceback.print_exc()
+        return 1
+    except KeyboardInterrupt:
+        print(f"{PROG}: interrupted", file=sys.stderr)
+        return 130

@@ -1,0 +1,71 @@
+"""The per-pair job: what a worker runs, and what it sends back to the one writer."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..matching import guided
+from ..matching.config import AcceptRule, SearchConfig
+from ..matching.filtering import keep_mask
+from .store import FeatureStore
+from .views import View
+
+__all__ = ["PairJob", "PairResult", "match_pair"]
+
+
+@dataclass(frozen=True)
+class PairJob:
+    """Everything a worker needs to match one pair; small and picklable.
+
+    ``search`` (its constraint and tol) and ``rule`` are as in
+    :func:`~episeg_cv.match_descriptors`; each view's ``depth_range`` bounds its own segments.
+    """
+
+    index: int
+    view1: View
+    view2: View
+    store: FeatureStore
+    search: SearchConfig = SearchConfig()
+    rule: AcceptRule = AcceptRule()
+    samples: int = 256
+
+
+@dataclass(frozen=True)
+class PairResult:
+    """What a worker sends back to the writer.
+
+    ``matches`` and ``inliers`` are ``(M, 2)`` uint32 keypoint indices
+    ``(i1, i2)`` into the two images' stored keypoints. ``lengths`` holds the
+    summed search lengths in image 2, in pixels, of up to ``PairJob.samples``
+    queries: the epipolar line, the segment, and the segment within view 1's
+    depth range (all clipped to the image); ``samples`` is their number.
+    """
+
+    index: int
+    matches: np.ndarray
+    inliers: np.ndarray
+    lengths: tuple
+    samples: int
+
+
+def match_pair(job: PairJob) -> PairResult:
+    """Match one pair on the segment (or line) and keep the inliers of both directions.
+
+    The raw matches are :func:`~episeg_cv.match_descriptors` from view 1 to view 2 with
+    view 1's depth range. The inliers are the raw matches that also satisfy
+    the constraint from view 2 to view 1 (with view 2's depth range): a
+    match must be consistent with both cameras' depth ranges.
+    """
+    _, q1, d1 = job.store.load(job.view1)
+    _, q2, d2 = job.store.load(job.view2)
+    g = job.view1.geometry_to(job.view2)
+    inputs = guided.MatchInputs.check(d1, d2, q1, q2, job.store.norm)
+    pairs, _ = guided.match(inputs, g, job.search.replace(depth_range=job.view1.depth_range), job.rule)
+    keep = keep_mask(pairs[:, ::-1], q2, q1, g.inverse(), job.search.replace(depth_range=job.view2.depth_range))
+    sample = q1[:: max(1, len(q1) // max(job.samples, 1))][: job.samples]
+    full = g.segments(sample)
+    ranged = g.segments(sample, job.view1.depth_range)
+    lengths = tuple(float(np.sum(x)) for x in (full.line_length, full.length, ranged.length))
+    return PairResult(job.index, pairs.astype(np.uint32), pairs[keep].astype(np.uint32), lengths, len(sample))

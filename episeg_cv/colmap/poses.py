@@ -1,0 +1,88 @@
+"""The poses JSON: a posed collection for users without a COLMAP model."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from .views import View, is_bounded
+
+__all__ = ["load_poses", "save_poses", "camera_of"]
+
+
+def camera_of(K, size, dist):
+    """COLMAP camera model and params for pinhole ``K`` (episeg_cv convention) and OpenCV ``dist``."""
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5
+    d = [float(v) for v in dist]
+    if not d or not any(d):
+        return "PINHOLE", (fx, fy, cx, cy)
+    if len(d) == 4:
+        return "OPENCV", (fx, fy, cx, cy, *d)
+    if len(d) in (5, 8):
+        return "FULL_OPENCV", (fx, fy, cx, cy, *(d + [0.0] * (8 - len(d))))
+    raise ValueError(f"dist must have 0, 4, 5 or 8 OpenCV coefficients, got {len(d)}")
+
+
+def load_poses(path) -> list[View]:
+    """Read a poses JSON: the input for users without a COLMAP model.
+
+    Format::
+
+        {"images": [{"name": "img_000.png", "width": 640, "height": 480,
+                     "K": [[fx, 0, cx], [0, fy, cy], [0, 0, 1]],
+                     "R": [[...], [...], [...]], "t": [tx, ty, tz],
+                     "dist": [k1, k2, p1, p2],              (optional, OpenCV order)
+                     "depth_range": [zmin, zmax]},          (optional)
+                    ...]}
+
+    ``R, t`` are world-to-camera (``X_cam = R X_world + t``). ``K`` puts the
+    centre of the top-left pixel at ``(0, 0)`` (OpenCV's convention). ``dist``
+    has 4 (COLMAP ``OPENCV``), 5 or 8 (``FULL_OPENCV``) coefficients. Images
+    with the same ``K``, size and ``dist`` share one COLMAP camera. Image ids
+    are 1, 2, ... in file order.
+
+    Raises
+    ------
+    ValueError
+        Unreadable JSON, a missing field or a bad value, naming the image.
+    """
+    try:
+        data = json.loads(Path(path).read_text(encoding="utf-8"))
+    except (OSError, json.JSONDecodeError) as e:
+        raise ValueError(f"poses file {str(path)!r} cannot be read: {e}") from e
+    items = data.get("images") if isinstance(data, dict) else data
+    if not isinstance(items, list) or not items:
+        raise ValueError(f"poses file {str(path)!r} must hold a non-empty list 'images'")
+    views, cameras, names = [], {}, set()
+    for k, item in enumerate(items):
+        where = f"poses file {str(path)!r}, image {k}"
+        if not isinstance(item, dict):
+            raise ValueError(f"{where}: expected an object, got {type(item).__name__}")
+        missing = [f for f in ("name", "K", "R", "t", "width", "height") if f not in item]
+        if missing:
+            raise ValueError(f"{where}: missing {', '.join(missing)}")
+        name = str(item["name"])
+        if name in names:
+            raise ValueError(f"{where}: image {name!r} is listed twice")
+        names.add(name)
+        try:
+            K = np.asarray(item["K"], dtype=np.float64)
+            size = (int(item["width"]), int(item["height"]))
+            model, params = camera_of(K, size, item.get("dist", ()))
+            key = (model, params, size)
+            cameras.setdefault(key, len(cameras) + 1)
+            views.append(View(name, k + 1, cameras[key], K, item["R"], item["t"], size, model, params,
+                              item.get("depth_range", (0.0, float("inf")))))
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"{where} ({name!r}): {e}") from e
+    return views
+
+
+def save_poses(path, views) -> None:
+    """Write ``views`` as a poses JSON (:func:`load_poses` reads it back; distortion is not written)."""
+    items = [{"name": v.name, "width": v.image_size[0], "height": v.image_size[1], "K": v.K.tolist(),
+              "R": v.R.tolist(), "t": v.t.tolist(),
+              **({"depth_range": list(v.depth_range)} if is_bounded(v.depth_range) else {})} for v in views]
+    Path(path).write_text(json.dumps({"images": items}, indent=1), encoding="utf-8")

@@ -1,0 +1,160 @@
+"""Posed views: one image with its pinhole camera, COLMAP camera model, world pose and depth range.
+
+Conventions
+-----------
+- Poses are world-to-camera, ``X_cam = R @ X_world + t`` (as
+  :meth:`TwoViewGeometry.from_world_poses` and COLMAP's ``cam_from_world``);
+  the pair ``(i, j)`` has ``X_j = R X_i + t``.
+- Keypoints are in episeg_cv's pixel convention (the centre of the top-left
+  pixel is ``(0, 0)``), in the *raw* (distorted) image. COLMAP's convention,
+  ``(0.5, 0.5)``, is applied only where the database is written.
+- The epipolar constraint needs a pinhole camera. Every keypoint of a camera
+  with distortion is mapped through COLMAP's own camera model
+  (``pycolmap.Camera.cam_from_img``, the exact inverse COLMAP uses) to a
+  normalised ray, then to the pinhole image of the camera's calibration
+  matrix ``K``. The constraint, and its pixel tolerance, act there; the
+  database gets the raw keypoints.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .._validation import as_camera_matrix, as_depth_range, as_image_size, as_rotation, as_vector3
+from ..geometry import TwoViewGeometry
+
+__all__ = ["View", "PINHOLE_MODELS", "depth_range_from_depths", "is_bounded", "require_pycolmap"]
+
+#: COLMAP camera models without distortion: pinhole keypoints are the raw ones.
+PINHOLE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE")
+
+
+def require_pycolmap():
+    """The pycolmap module, or an ImportError that says how to install it."""
+    try:
+        import pycolmap
+    except ImportError as e:  # pragma: no cover - depends on the environment
+        raise ImportError('episeg_cv.colmap needs pycolmap: pip install "episeg_cv[colmap]"') from e
+    return pycolmap
+
+
+@dataclass(frozen=True, eq=False)
+class View:
+    """One posed image.
+
+    Attributes
+    ----------
+    name : str
+        Image path relative to the image folder (as in a COLMAP model).
+    image_id, camera_id : int
+        COLMAP ids (kept from the model, so the database agrees with it).
+    K : (3, 3) float64
+        Pinhole intrinsics, pixel centres at integer coordinates.
+    R : (3, 3) float64
+    t : (3,) float64
+        World-to-camera pose, ``X_cam = R @ X_world + t``.
+    image_size : (int, int)
+        ``(width, height)``.
+    camera_model : str
+        COLMAP camera model name (``"PINHOLE"``, ``"SIMPLE_RADIAL"``, ``"OPENCV"``, ...).
+    camera_params : tuple of float
+        COLMAP camera parameters, in COLMAP's pixel convention.
+    depth_range : (float, float)
+        ``(zmin, zmax)`` of the scene in this camera, used for its segments.
+
+    Examples
+    --------
+    >>> K = [[100, 0, 49.5], [0, 100, 49.5], [0, 0, 1]]
+    >>> a = View("a.png", 1, 1, K, np.eye(3), [0, 0, 0], (100, 100), depth_range=(1, 10))
+    >>> b = View("b.png", 2, 1, K, np.eye(3), [-1, 0, 0], (100, 100))   # 1 m to the right of a
+    >>> a.camera_params, b.center.tolist()
+    ((100.0, 100.0, 50.0, 50.0), [1.0, 0.0, 0.0])
+    >>> g = a.geometry_to(b)
+    >>> seg = g.segments([[49.5, 49.5]], a.depth_range)
+    >>> np.round(seg.start, 1).tolist(), np.round(seg.end, 1).tolist()   # x2 = 49.5 - 100 / z, z in [1, 10]
+    ([[-0.5, 49.5]], [[39.5, 49.5]])
+    """
+
+    name: str
+    image_id: int
+    camera_id: int
+    K: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+    image_size: tuple
+    camera_model: str = "PINHOLE"
+    camera_params: tuple = field(default=())
+    depth_range: tuple = (0.0, float("inf"))
+
+    def __post_init__(self):
+        object.__setattr__(self, "K", as_camera_matrix(self.K, f"K of image {self.name!r}"))
+        object.__setattr__(self, "R", as_rotation(self.R, f"R of image {self.name!r}"))
+        object.__setattr__(self, "t", as_vector3(self.t, f"t of image {self.name!r}"))
+        object.__setattr__(self, "image_size", as_image_size(self.image_size, f"image_size of image {self.name!r}"))
+        object.__setattr__(self, "depth_range", tuple(float(v) for v in as_depth_range(
+            self.depth_range, None, f"depth_range of image {self.name!r}")))
+        params = self.camera_params or (self.K[0, 0], self.K[1, 1], self.K[0, 2] + 0.5, self.K[1, 2] + 0.5)
+        object.__setattr__(self, "camera_params", tuple(float(p) for p in params))
+
+    def with_depth_range(self, depth_range) -> "View":
+        """A copy with another ``depth_range``."""
+        return dataclasses.replace(self, depth_range=depth_range)
+
+    def geometry_to(self, other: "View") -> TwoViewGeometry:
+        """The :class:`TwoViewGeometry` from this view to ``other`` (pinhole images)."""
+        return TwoViewGeometry.from_world_poses(self.K, self.R, self.t, other.K, other.R, other.t,
+                                                image_size1=self.image_size, image_size2=other.image_size)
+
+    @property
+    def center(self) -> np.ndarray:
+        """(3,) camera centre in the world, ``-R^T t``."""
+        return -self.R.T @ self.t
+
+    def undistort(self, points: np.ndarray) -> np.ndarray:
+        """Raw keypoints ``(N, 2)`` -> their positions in the pinhole image of ``K``.
+
+        Identity for ``SIMPLE_PINHOLE`` and ``PINHOLE``; otherwise COLMAP's
+        own inverse of the camera model (``pycolmap.Camera.cam_from_img``).
+        """
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+        if self.camera_model in PINHOLE_MODELS or len(pts) == 0:
+            return pts.copy()
+        pycolmap = require_pycolmap()
+        w, h = self.image_size
+        cam = pycolmap.Camera(model=self.camera_model, width=w, height=h, params=list(self.camera_params))
+        rays = np.asarray(cam.cam_from_img(pts + 0.5), dtype=np.float64).reshape(-1, 2)
+        return rays @ self.K[:2, :2].T + self.K[:2, 2]
+
+
+def depth_range_from_depths(depths, percentiles=(2.0, 98.0), margin: float = 0.25, min_points: int = 10):
+    """A robust depth range from the depths of the 3D points an image sees.
+
+    ``zmin = p_lo / (1 + margin)``, ``zmax = p_hi * (1 + margin)``, where
+    ``p_lo, p_hi`` are the given percentiles of the positive depths.
+
+    Returns
+    -------
+    (float, float)
+        ``(0, inf)`` when fewer than ``min_points`` positive depths are given.
+
+    Examples
+    --------
+    >>> depth_range_from_depths(np.linspace(2.0, 4.0, 101), percentiles=(0, 100), margin=0.0)
+    (2.0, 4.0)
+    >>> depth_range_from_depths([1.0, 2.0])
+    (0.0, inf)
+    """
+    d = np.asarray(depths, dtype=np.float64).ravel()
+    d = d[np.isfinite(d) & (d > 0)]
+    if len(d) < min_points:
+        return (0.0, float("inf"))
+    lo, hi = np.percentile(d, percentiles)
+    return (float(lo / (1.0 + margin)), float(hi * (1.0 + margin)))
+
+
+def is_bounded(depth_range) -> bool:
+    """Whether ``(zmin, zmax)`` says more than ``(0, inf)``."""
+    return bool(depth_range[0] > 0 or np.isfinite(depth_range[1]))

@@ -1,0 +1,464 @@
+"""Calibration files: read and write a two-view calibration.
+
+:func:`load_calibration` reads JSON, or the YAML / XML that ``cv2.FileStorage``
+writes (what ``cv2.stereoCalibrate`` users usually save), into a
+:class:`Calibration`, whose :attr:`~Calibration.geometry` is the
+:class:`~episeg_cv.TwoViewGeometry` a matcher needs.
+
+Lens distortion
+---------------
+The epipolar segment is a pinhole construction. When a file holds distortion
+coefficients (``dist1``/``dist2``, or OpenCV's ``D1``/``D2``), the keypoints
+must first be moved into the pinhole image with :func:`~episeg_cv.undistort_points`
+(``cv2.undistortPoints`` with ``P = K``): the undistorted positions are pixels of
+an ideal camera with the same ``K`` and image size. The ``episeg`` command does
+this for you; the matches still index the keypoints as detected.
+
+Conventions: ``X2 = R @ X1 + t`` (as ``cv2.stereoCalibrate`` returns ``R, T``);
+pixel centres at integer coordinates; ``image_size`` is ``(width, height)``.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .._validation import as_camera_matrix, as_image_size, as_rotation, as_vector3
+from ..distortion import as_distortion
+from ..geometry import TwoViewGeometry, as_geometry
+
+__all__ = ["Calibration", "load_calibration", "save_calibration"]
+
+_LAYOUTS = ("K1, K2, R, t [, image_size1, image_size2, dist1, dist2]; "
+            "cameras: [{K, R, t, image_size, dist}, {...}]; K1, R1, t1, K2, R2, t2; P1, P2; "
+            "or OpenCV's M1, D1, M2, D2, R, T")
+
+
+@dataclass(frozen=True, eq=False)
+class Calibration:
+    """Intrinsics, relative pose, image sizes and distortion of two cameras.
+
+    Attributes
+    ----------
+    K1, K2 : (3, 3) float64
+        Intrinsics in pixels (pixel centres at integer coordinates).
+    R : (3, 3) float64
+        Rotation from camera 1 to camera 2: ``X2 = R @ X1 + t``.
+    t : (3,) float64
+        Translation, in the file's length unit (the unit of a depth range).
+    image_size1, image_size2 : (int, int) or None
+        ``(width, height)``; None when the file does not say (see
+        :meth:`with_image_sizes`).
+    dist1, dist2 : (k,) float64 or None
+        OpenCV distortion coefficients (``k`` in 4, 5, 8, 12, 14); None when
+        absent or all zero.
+    source : str
+        Where it was read from (for messages).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> K = [[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]]
+    >>> c = Calibration(np.array(K), np.array(K), np.eye(3), np.array([-1.0, 0, 0]), (640, 480), (640, 480))
+    >>> c.geometry.epipole.tolist()          # t_3 = 0: the epipole is at infinity
+    [-inf, nan]
+    >>> c.has_distortion
+    False
+    """
+
+    K1: np.ndarray
+    K2: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+    image_size1: tuple | None = None
+    image_size2: tuple | None = None
+    dist1: np.ndarray | None = None
+    dist2: np.ndarray | None = None
+    source: str = "<calibration>"
+
+    def __post_init__(self):
+        src = self.source
+        object.__setattr__(self, "K1", _checked(as_camera_matrix, self.K1, "K1", src))
+        object.__setattr__(self, "K2", _checked(as_camera_matrix, self.K2, "K2", src))
+        object.__setattr__(self, "R", _checked(as_rotation, self.R, "R", src))
+        object.__setattr__(self, "t", _checked(as_vector3, self.t, "t", src))
+        for name in ("image_size1", "image_size2"):
+            v = getattr(self, name)
+            if v is not None:
+                if isinstance(v, np.ndarray):
+                    v = tuple(v.ravel().tolist())
+                object.__setattr__(self, name, _checked(as_image_size, v, name, src))
+        for name in ("dist1", "dist2"):
+            object.__setattr__(self, name, as_distortion(getattr(self, name), name, src))
+        for name in ("K1", "K2", "R", "t", "dist1", "dist2"):
+            a = getattr(self, name)
+            if a is not None:
+                a.flags.writeable = False
+
+    @property
+    def has_distortion(self) -> bool:
+        """True when either camera has non-zero distortion coefficients."""
+        return self.dist1 is not None or self.dist2 is not None
+
+    @property
+    def geometry(self) -> TwoViewGeometry:
+        """The :class:`~episeg_cv.TwoViewGeometry` of the (undistorted) pair.
+
+        Raises
+        ------
+        ValueError
+            The image sizes are unknown; use :meth:`with_image_sizes` first.
+        """
+        if self.image_size1 is None or self.image_size2 is None:
+            raise ValueError(f"{self.source}: image sizes unknown; add 'image_size1' and 'image_size2' "
+                             "([width, height]) to the file or pass them to load_calibration")
+        return TwoViewGeometry(self.K1, self.K2, self.R, self.t, image_size1=self.image_size1,
+                               image_size2=self.image_size2)
+
+    def with_image_sizes(self, image_size1, image_size2) -> "Calibration":
+        """Fill in missing image sizes; check those the file gives against these.
+
+        Parameters
+        ----------
+        image_size1, image_size2 : (int, int)
+            ``(width, height)`` of the images, e.g. ``image.shape[1::-1]``.
+
+        Raises
+        ------
+        ValueError
+            The file gives a different size.
+        """
+        sizes = []
+        for name, given in (("image_size1", image_size1), ("image_size2", image_size2)):
+            given = as_image_size(given, name)
+            own = getattr(self, name)
+            if own is not None and own != given:
+                raise ValueError(f"{self.source}: {name} is {own[0]}x{own[1]} but the image is {given[0]}x{given[1]}")
+            sizes.append(given)
+        return replace(self, image_size1=sizes[0], image_size2=sizes[1])
+
+    @classmethod
+    def from_geometry(cls, geometry: TwoViewGeometry, dist1=None, dist2=None) -> "Calibration":
+        """The calibration of a :class:`~episeg_cv.TwoViewGeometry`, with optional distortion."""
+        geometry = as_geometry(geometry)
+        return cls(geometry.K1.copy(), geometry.K2.copy(), geometry.R.copy(), geometry.t.copy(),
+                   geometry.image_size1, geometry.image_size2, dist1, dist2, "<geometry>")
+
+
+def _checked(fn, value, name, source):
+    try:
+        return fn(value, name)
+    except (ValueError, TypeError) as exc:
+        raise type(exc)(f"{source}: {exc}") from None
+
+
+# --------------------------------------------------------------------------------------
+# Reading
+# --------------------------------------------------------------------------------------
+def load_calibration(path, image_size1=None, image_size2=None) -> Calibration:
+    """Read a two-view calibration from a JSON, YAML or XML file.
+
+    Accepted layouts (keys are case-sensitive; ``t`` may be ``(3,)``, ``(3, 1)``
+    or ``(1, 3)``; sizes are ``[width, height]``; distortion is optional and
+    uses OpenCV's coefficient order ``k1, k2, p1, p2[, k3, ...]``):
+
+    1. Relative pose, ``X2 = R X1 + t``::
+
+           {"K1": 3x3, "K2": 3x3, "R": 3x3, "t": [3],
+            "image_size1": [w, h], "image_size2": [w, h],
+            "dist1": [k...], "dist2": [k...]}
+
+       ``"K"`` alone stands for both ``K1`` and ``K2``, and ``"image_size"``
+       for both sizes.
+    2. World-to-camera poses per camera (``X_cam = R X_world + t``, OpenCV and
+       COLMAP)::
+
+           {"cameras": [{"K": 3x3, "R": 3x3, "t": [3], "image_size": [w, h], "dist": [k...]},
+                        {...}]}
+
+       or flat: ``K1, R1, t1, K2, R2, t2`` (+ sizes, distortion).
+    3. Projection matrices ``P = K [R | t]``: ``P1``, ``P2`` (3x4) + sizes.
+    4. OpenCV's ``stereoCalibrate`` names, in JSON or in a ``cv2.FileStorage``
+       file (``.yml``, ``.yaml``, ``.xml``, optionally ``.gz``): ``M1``, ``D1``,
+       ``M2``, ``D2``, ``R``, ``T``. Sizes from ``image_size1``/``image_size2``,
+       ``image_size``/``imageSize``, ``image_width``/``image_height`` or
+       ``width``/``height`` if present. Matrices written by
+       ``cv2.FileStorage`` in JSON (``"type_id": "opencv-matrix"``) are read too.
+
+    Files with ``.json`` are parsed as JSON; any other suffix goes to
+    ``cv2.FileStorage``.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+    image_size1, image_size2 : (int, int), optional
+        ``(width, height)`` of the images. Fill in sizes the file does not
+        give; when it does, they must agree.
+
+    Returns
+    -------
+    Calibration
+
+    Raises
+    ------
+    OSError
+        The file does not exist or cannot be read.
+    ValueError
+        Unparseable file, or a missing or malformed key. The message names the
+        file, the key and the expected shape, e.g.
+        ``calib.json: key 'K1' must be a 3x3 matrix, got shape (3, 4)``.
+
+    Examples
+    --------
+    >>> from episeg_cv.datasets import data_dir
+    >>> c = load_calibration(data_dir() / "default" / "calib.json")
+    >>> c.image_size1, c.has_distortion, c.geometry.image_size2
+    ((640, 480), False, (640, 480))
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"calibration file not found: {path}")
+    name = path.name
+    if path.suffix.lower() == ".json":
+        try:
+            data = json.loads(path.read_text())
+        except UnicodeDecodeError as exc:
+            raise ValueError(f"{name}: not a text file ({exc.reason})") from None
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"{name}: invalid JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}") from None
+        if not isinstance(data, dict):
+            raise ValueError(f"{name}: the top level must be a JSON object, got {type(data).__name__}")
+        data = {k: _from_opencv_json(v) for k, v in data.items()}
+    else:
+        data = _read_filestorage(path)
+    calib = _from_mapping(data, name)
+    if image_size1 is not None or image_size2 is not None:
+        if image_size1 is None or image_size2 is None:
+            raise ValueError("image_size1 and image_size2 must be given together")
+        calib = calib.with_image_sizes(image_size1, image_size2)
+    return calib
+
+
+def _from_opencv_json(v):
+    """A matrix as ``cv2.FileStorage`` writes it in JSON, or ``v`` unchanged."""
+    if isinstance(v, dict) and v.get("type_id") == "opencv-matrix" and {"rows", "cols", "data"} <= v.keys():
+        return np.asarray(v["data"], dtype=np.float64).reshape(v["rows"], v["cols"])
+    if isinstance(v, list):
+        return [_from_opencv_json(x) for x in v]
+    if isinstance(v, dict):
+        return {k: _from_opencv_json(x) for k, x in v.items()}
+    return v
+
+
+def _read_filestorage(path: Path) -> dict:
+    try:
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+        opened = fs.isOpened()
+    except Exception as exc:  # cv2.error, or SystemError wrapping it, on a parse error
+        reason = str(exc.__cause__ or exc).strip().splitlines()[-1]
+        raise ValueError(f"{path.name}: cannot parse as OpenCV YAML/XML ({reason})") from None
+    if not opened:
+        raise ValueError(f"{path.name}: cannot open as OpenCV YAML/XML (use .json, .yml, .yaml or .xml)")
+    try:
+        root = fs.root()
+        return {k: _node_value(fs.getNode(k)) for k in root.keys()}
+    finally:
+        fs.release()
+
+
+def _node_value(node):
+    if node.isMap():
+        m = node.mat()
+        if m is not None:
+            return np.asarray(m, dtype=np.float64)
+        return {k: _node_value(node.getNode(k)) for k in node.keys()}
+    if node.isSeq():
+        return [_node_value(node.at(i)) for i in range(node.size())]
+    if node.isInt():
+        return int(node.real())
+    if node.isReal():
+        return node.real()
+    if node.isString():
+        return node.string()
+    return None
+
+
+def _matrix(data: dict, key: str, shape: tuple, source: str, required: bool = True):
+    if key not in data or data[key] is None:
+        if not required:
+            return None
+        raise ValueError(f"{source}: missing key '{key}' (a {_shape_words(shape)}); accepted layouts: {_LAYOUTS}")
+    v = data[key]
+    try:
+        arr = np.asarray(v, dtype=np.float64)
+    except (ValueError, TypeError):
+        raise ValueError(f"{source}: key '{key}' must be a {_shape_words(shape)} of numbers, got {v!r:.60}") from None
+    if shape == (3,) and arr.size == 3 and arr.ndim <= 2:
+        arr = arr.reshape(3)
+    if arr.shape != shape:
+        raise ValueError(f"{source}: key '{key}' must be a {_shape_words(shape)}, got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{source}: key '{key}' must be finite, got NaN or inf")
+    return arr
+
+
+def _shape_words(shape) -> str:
+    if len(shape) == 1:
+        return f"vector of {shape[0]} numbers"
+    return f"{shape[0]}x{shape[1]} matrix"
+
+
+def _size(data: dict, keys, source: str):
+    for key in keys:
+        if isinstance(key, tuple):  # (width_key, height_key)
+            if key[0] in data and key[1] in data:
+                v, label = (data[key[0]], data[key[1]]), f"'{key[0]}'/'{key[1]}'"
+            else:
+                continue
+        elif key in data and data[key] is not None:
+            v, label = data[key], f"'{key}'"
+        else:
+            continue
+        try:
+            arr = np.asarray(v, dtype=np.float64).ravel()
+        except (ValueError, TypeError):
+            arr = np.zeros(0)
+        if arr.size != 2 or not np.all(np.isfinite(arr)) or np.any(arr <= 0) or np.any(arr != np.round(arr)):
+            raise ValueError(f"{source}: key {label} must be [width, height], two positive integers, got {v!r}")
+        return int(arr[0]), int(arr[1])
+    return None
+
+
+def _from_mapping(data: dict, source: str) -> Calibration:
+    def get_dist(*keys):
+        for k in keys:
+            if k in data and data[k] is not None:
+                return as_distortion(data[k], k, source)
+        return None
+
+    shared = _size(data, ("image_size", "imageSize", ("image_width", "image_height"), ("width", "height")), source)
+    size1 = _size(data, ("image_size1",), source) or shared
+    size2 = _size(data, ("image_size2",), source) or shared
+
+    if "cameras" in data:
+        cams = data["cameras"]
+        if not isinstance(cams, list) or len(cams) != 2 or not all(isinstance(c, dict) for c in cams):
+            raise ValueError(f"{source}: key 'cameras' must be a list of two objects with K, R, t, got {cams!r:.60}")
+        Ks, Rs, ts, sizes, dists = [], [], [], [], []
+        for i, cam in enumerate(cams):
+            where = f"{source}: cameras[{i}]"
+            Ks.append(_matrix(cam, "K", (3, 3), where))
+            Rs.append(_matrix(cam, "R", (3, 3), where))
+            ts.append(_matrix(cam, "t", (3,), where))
+            sizes.append(_size(cam, ("image_size", ("width", "height")), where) or (size1, size2)[i])
+            dists.append(as_distortion(cam.get("dist"), "dist", where))
+        R, t = _relative(Rs, ts, source)
+        return Calibration(Ks[0], Ks[1], R, t, sizes[0], sizes[1], dists[0], dists[1], source)
+
+    if "P1" in data and "P2" in data and "K1" not in data and "M1" not in data:
+        P1 = _matrix(data, "P1", (3, 4), source)
+        P2 = _matrix(data, "P2", (3, 4), source)
+        try:
+            g = TwoViewGeometry.from_projection_matrices(P1, P2, image_size1=size1 or (1, 1), image_size2=size2 or (1, 1))
+        except ValueError as exc:
+            raise ValueError(f"{source}: {exc}") from None
+        return Calibration(g.K1.copy(), g.K2.copy(), g.R.copy(), g.t.copy(), size1, size2,
+                           get_dist("dist1", "D1"), get_dist("dist2", "D2"), source)
+
+    if "M1" in data and "K1" not in data:  # cv2.stereoCalibrate names
+        K1 = _matrix(data, "M1", (3, 3), source)
+        K2 = _matrix(data, "M2", (3, 3), source)
+        R = _matrix(data, "R", (3, 3), source)
+        t = _matrix(data, "T", (3,), source)
+        return Calibration(K1, K2, R, t, size1, size2, get_dist("D1", "dist1"), get_dist("D2", "dist2"), source)
+
+    K = _matrix(data, "K", (3, 3), source, required=False)
+    K1 = _matrix(data, "K1", (3, 3), source, required=K is None)
+    K2 = _matrix(data, "K2", (3, 3), source, required=K is None)
+    K1 = K if K1 is None else K1
+    K2 = K if K2 is None else K2
+    if "R1" in data or "R2" in data:  # flat world poses
+        Rs = [_matrix(data, "R1", (3, 3), source), _matrix(data, "R2", (3, 3), source)]
+        ts = [_matrix(data, "t1", (3,), source), _matrix(data, "t2", (3,), source)]
+        R, t = _relative(Rs, ts, source)
+    else:
+        R = _matrix(data, "R", (3, 3), source)
+        t = _matrix(data, "t", (3,), source) if "t" in data or "T" not in data else _matrix(data, "T", (3,), source)
+    return Calibration(K1, K2, R, t, size1, size2, get_dist("dist1", "D1"), get_dist("dist2", "D2"), source)
+
+
+def _relative(Rs, ts, source):
+    """``R = R2 R1^T``, ``t = t2 - R t1`` from world-to-camera poses."""
+    for i, R in enumerate(Rs):
+        _checked(as_rotation, R, f"R{i + 1}", source)
+    R = Rs[1] @ Rs[0].T
+    return R, ts[1] - R @ ts[0]
+
+
+# --------------------------------------------------------------------------------------
+# Writing
+# --------------------------------------------------------------------------------------
+def save_calibration(path, calibration: Calibration) -> Path:
+    """Write a calibration as JSON (layout 1) or, for ``.yml``/``.yaml``/``.xml``, OpenCV's names.
+
+    The JSON written is read back by :func:`load_calibration`; the YAML/XML
+    holds ``M1, D1, M2, D2, R, T, image_size1, image_size2`` as
+    ``cv2.FileStorage`` writes them.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+    calibration : Calibration or TwoViewGeometry
+
+    Returns
+    -------
+    pathlib.Path
+        The path written.
+
+    Examples
+    --------
+    >>> import tempfile, os
+    >>> from episeg_cv.datasets import load_default_pair
+    >>> c = Calibration.from_geometry(load_default_pair().geometry)
+    >>> with tempfile.TemporaryDirectory() as d:
+    ...     back = load_calibration(save_calibration(os.path.join(d, "c.yml"), c))
+    >>> bool(np.allclose(back.R, c.R)), back.image_size2
+    (True, (640, 480))
+    """
+    if isinstance(calibration, TwoViewGeometry):
+        calibration = Calibration.from_geometry(calibration)
+    if not isinstance(calibration, Calibration):
+        raise TypeError(f"calibration must be a Calibration or a TwoViewGeometry, got {type(calibration).__name__}")
+    c = calibration
+    path = Path(path)
+    if path.suffix.lower() == ".json":
+        out = {"convention": "X2 = R X1 + t; pixel centres at integer coordinates; image_size = [width, height]",
+               "K1": c.K1.tolist(), "K2": c.K2.tolist(), "R": c.R.tolist(), "t": c.t.tolist()}
+        for name in ("image_size1", "image_size2"):
+            if getattr(c, name) is not None:
+                out[name] = list(getattr(c, name))
+        for name in ("dist1", "dist2"):
+            if getattr(c, name) is not None:
+                out[name] = getattr(c, name).tolist()
+        path.write_text(json.dumps(out, indent=2) + "\n")
+        return path
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    if not fs.isOpened():
+        raise OSError(f"cannot write {path}")
+    try:
+        fs.write("M1", c.K1)
+        fs.write("D1", np.zeros((1, 5)) if c.dist1 is None else c.dist1.reshape(1, -1))
+        fs.write("M2", c.K2)
+        fs.write("D2", np.zeros((1, 5)) if c.dist2 is None else c.dist2.reshape(1, -1))
+        fs.write("R", c.R)
+        fs.write("T", c.t.reshape(3, 1))
+        for name in ("image_size1", "image_size2"):
+            if getattr(c, name) is not None:
+                fs.write(name, np.array(getattr(c, name), dtype=np.int32))
+    finally:
+        fs.release()
+    return path

@@ -1,0 +1,220 @@
+"""The ``episeg`` command, run in subprocesses on the bundled data: exit codes, files that parse."""
+
+import csv
+import json
+import shutil
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+
+from episeg_cv import Calibration, load_calibration, save_calibration
+from episeg_cv.io import read_matches
+from episeg_cv.datasets import data_dir
+
+DEFAULT = data_dir() / "default"
+IMG1, IMG2, CALIB = str(DEFAULT / "image1.png"), str(DEFAULT / "image2.png"), str(DEFAULT / "calib.json")
+LABELS = {"on_segment", "beyond_infinity", "beyond_epipole", "off_line", "empty_segment", "out_of_range"}
+
+
+def run(*args, cwd=None):
+    return subprocess.run([sys.executable, "-m", "episeg_cv.cli", *map(str, args)], capture_output=True,
+                          text=True, cwd=cwd, timeout=300)
+
+
+def _check_no_traceback(r):
+    assert "Traceback" not in r.stderr, r.stderr
+
+
+# --- demo ----------------------------------------------------------------------------------
+def test_demo_writes_figures_and_matches(tmp_path):
+    out = tmp_path / "demo"
+    r = run("demo", "--out", out)
+    assert r.returncode == 0, r.stderr
+    for name in ("segment-guided", "line-guided", "BFMatcher + ratio 0.8 + line filter", "precision"):
+        assert name in r.stdout
+    for name in ("matches.png", "segments.png"):
+        img = cv2.imread(str(out / name))
+        assert img is not None and img.ndim == 3 and img.shape[1] >= 1280
+    data = json.loads((out / "matches.json").read_text())
+    meta = data["meta"]
+    assert meta["format"] == "episeg-matches" and meta["counts"]["matches"] == len(data["matches"]) > 100
+    assert 0 < meta["counts"]["correct"] <= meta["counts"]["matches"]
+    assert {row["method"] for row in meta["comparison"]} >= {"BFMatcher + ratio 0.8"}
+    assert len(data["distances"]) == len(data["labels"]) == len(data["matches"])
+    assert set(data["labels"]) <= LABELS
+    m = np.array(data["matches"])
+    assert m[:, 0].max() < len(data["keypoints1"]) and m[:, 1].max() < len(data["keypoints2"])
+
+
+def test_demo_quiet_prints_nothing(tmp_path):
+    r = run("demo", "--out", tmp_path, "--quiet", "--max-features", "500", "--points", "3")
+    assert r.returncode == 0, r.stderr
+    assert r.stdout == "" and r.stderr == ""
+
+
+# --- match ---------------------------------------------------------------------------------
+@pytest.mark.parametrize("detector, constraint, extra", [
+    ("sift", "segment", []),
+    ("orb", "line", ["--cross-check"]),
+    ("akaze", "segment", ["--depth-range", "0.5", "inf"]),
+    ("sift", "none", ["--ratio", "0.7"]),
+])
+def test_match_json(tmp_path, detector, constraint, extra):
+    out, fig = tmp_path / "m.json", tmp_path / "m.png"
+    r = run("match", IMG1, IMG2, "--calib", CALIB, "--detector", detector, "--constraint", constraint,
+            "--max-features", "800", "--out", out, "--figure", fig, *extra)
+    assert r.returncode == 0, r.stderr
+    data = json.loads(out.read_text())
+    meta = data["meta"]
+    assert meta["settings"]["detector"] == detector and meta["settings"]["constraint"] == constraint
+    assert meta["counts"]["matches"] == len(data["matches"]) > 0
+    assert meta["counts"]["keypoints1"] == len(data["keypoints1"]) <= 800
+    assert not meta["undistorted"] and "keypoints1_undistorted" not in data
+    assert set(data["labels"]) <= LABELS
+    if constraint == "segment":
+        assert set(data["labels"]) == {"on_segment"}
+    if constraint == "none":  # plain BFMatcher: some matches off the line
+        assert sum(lab != "on_segment" for lab in data["labels"]) > 0
+    assert cv2.imread(str(fig)) is not None
+
+
+def test_match_npz_and_csv_hold_the_same_matches(tmp_path):
+    for name in ("m.npz", "m.csv", "m.json"):
+        r = run("match", IMG1, IMG2, "--calib", CALIB, "--max-features", "600", "--out", tmp_path / name, "-q")
+        assert r.returncode == 0, r.stderr
+    z, j = read_matches(tmp_path / "m.npz"), read_matches(tmp_path / "m.json")
+    assert set(z) >= {"meta", "keypoints1", "keypoints2", "matches", "distances", "labels"}
+    assert z["matches"].dtype.kind == "i" and z["matches"].shape[1] == 2
+    np.testing.assert_array_equal(z["matches"], j["matches"])
+    np.testing.assert_allclose(z["distances"], j["distances"], rtol=1e-5)
+    assert z["meta"]["counts"]["matches"] == len(z["matches"])
+    with open(tmp_path / "m.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert list(rows[0]) == ["x1", "y1", "x2", "y2", "distance", "label"]
+    assert len(rows) == len(j["matches"])
+    i1, i2 = j["matches"][0]
+    np.testing.assert_allclose([float(rows[0]["x1"]), float(rows[0]["y2"])],
+                               [j["keypoints1"][i1, 0], j["keypoints2"][i2, 1]], atol=1e-3)
+
+
+def test_match_undistorts_with_distortion_coefficients(tmp_path):
+    c = load_calibration(CALIB)
+    yml = save_calibration(tmp_path / "stereo.yml", Calibration(c.K1, c.K2, c.R, c.t, None, None,
+                                                                [-0.05, 0.01, 0, 0, 0], [-0.05, 0.01, 0, 0, 0]))
+    r = run("match", IMG1, IMG2, "--calib", yml, "--max-features", "600", "--out", tmp_path / "m.json")
+    assert r.returncode == 0, r.stderr
+    data = read_matches(tmp_path / "m.json")
+    assert data["meta"]["undistorted"] is True
+    assert data["keypoints1_undistorted"].shape == data["keypoints1"].shape
+    assert not np.allclose(data["keypoints1_undistorted"], data["keypoints1"])
+    r = run("segments", IMG1, IMG2, "--calib", yml, "--random", "4", "--out", tmp_path / "s.png")
+    assert r.returncode == 0, r.stderr
+
+
+# --- segments --------------------------------------------------------------------------------
+def test_segments_figure(tmp_path):
+    out = tmp_path / "fig.png"
+    r = run("segments", IMG1, IMG2, "--calib", CALIB, "--points", "100,100", "320.5,240", "600,50", "--out", out)
+    assert r.returncode == 0, r.stderr
+    img = cv2.imread(str(out))
+    assert img is not None and img.shape[1] > 2 * 640 and img.shape[0] > 480
+    assert "epipole in image 2" in r.stdout and r.stdout.count("\n") >= 5
+    r = run("segments", IMG1, IMG2, "--calib", CALIB, "--random", "5", "--depth-range", "1", "5", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "segments.png").is_file()
+
+
+# --- errors and usage ------------------------------------------------------------------------
+def test_wrong_calibration_gives_exit_1_and_a_clear_message(tmp_path):
+    bad = tmp_path / "calib.json"
+    bad.write_text(json.dumps({"K1": [[500, 0, 320], [0, 500, 240]], "K2": np.eye(3).tolist(),
+                               "R": np.eye(3).tolist(), "t": [1, 0, 0]}))
+    r = run("match", IMG1, IMG2, "--calib", bad)
+    assert r.returncode == 1
+    _check_no_traceback(r)
+    assert r.stderr.strip() == "episeg: error: calib.json: key 'K1' must be a 3x3 matrix, got shape (2, 3)"
+    r = run("segments", IMG1, IMG2, "--calib", data_dir() / "motorcycle" / "calib.json")
+    assert r.returncode == 1 and "image_size1 is 741x500 but the image is 640x480" in r.stderr
+    _check_no_traceback(r)
+
+
+@pytest.mark.parametrize("args, message", [
+    (["match", IMG1, "missing.png", "--calib", CALIB], "image not found: missing.png"),
+    (["match", IMG1, IMG2, "--calib", "missing.json"], "calibration file not found: missing.json"),
+    (["match", IMG1, IMG2, "--calib", CALIB, "--out", "m.txt"], "--out must end in .json, .npz or .csv"),
+    (["match", IMG1, IMG2, "--calib", CALIB, "--depth-range", "5", "1"], "zmin < zmax"),
+    (["segments", IMG1, IMG2, "--calib", CALIB, "--points", "1000,3"], "outside image 1"),
+    (["match", CALIB, IMG2, "--calib", CALIB], "cannot read image"),
+])
+def test_bad_data_gives_exit_1(tmp_path, args, message):
+    r = run(*args, cwd=tmp_path)
+    assert r.returncode == 1, r.stderr
+    _check_no_traceback(r)
+    assert message in r.stderr and len(r.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("args", [
+    ["match", IMG1, IMG2, "--calib", CALIB, "--bogus"],
+    ["match", IMG1, IMG2],
+    ["match", IMG1, IMG2, "--calib", CALIB, "--detector", "surf"],
+    ["segments", IMG1, IMG2, "--calib", CALIB, "--points", "1;2"],
+    ["nonsense"],
+    [],
+])
+def test_usage_errors_give_exit_2(args):
+    r = run(*args)
+    assert r.returncode == 2
+    assert "usage:" in r.stderr
+    _check_no_traceback(r)
+
+
+@pytest.mark.parametrize("command", ["demo", "match", "segments", "bench"])
+def test_help_has_an_example(command):
+    r = run(command, "--help")
+    assert r.returncode == 0 and "example" in r.stdout and f"episeg {command}" in r.stdout
+
+
+def test_installed_script():
+    exe = shutil.which("episeg")
+    if exe is None:
+        pytest.skip("the episeg script is not on PATH")
+    r = subprocess.run([exe, "--help"], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0 and "demo" in r.stdout and "bench" in r.stdout
+
+
+# --- bench (on a mocked benchmarks folder: the real run is long) --------------------------------
+FAKE_SCRIPT = """\
+import argparse, pathlib, sys
+p = argparse.ArgumentParser()
+{quick}
+args = p.parse_args()
+out = pathlib.Path(__file__).parent / "results"
+out.mkdir(exist_ok=True)
+(out / "{name}.md").write_text("quick=" + str(getattr(args, "quick", None)))
+"""
+
+
+def test_bench_runs_the_scripts_and_passes_quick_only_where_accepted(tmp_path):
+    d = tmp_path / "benchmarks"
+    d.mkdir()
+    (d / "table1.py").write_text(FAKE_SCRIPT.format(quick="", name="table1"))
+    (d / "compare.py").write_text(FAKE_SCRIPT.format(quick='p.add_argument("--quick", action="store_true")',
+                                                     name="compare"))
+    r = run("bench", "--quick", "--dir", d)
+    assert r.returncode == 0, r.stderr
+    assert (d / "results" / "table1.md").read_text() == "quick=None"
+    assert (d / "results" / "compare.md").read_text() == "quick=True"
+    assert "speed.py not found" in r.stderr
+    assert str(d / "results") in r.stdout and "compare.md" in r.stdout
+    (d / "compare.py").write_text("import sys; sys.exit(3)")
+    r = run("bench", "--dir", d, "--only", "compare.py")
+    assert r.returncode == 1 and "compare.py failed with exit code 3" in r.stderr
+
+
+def test_bench_without_a_benchmarks_folder(tmp_path):
+    r = run("bench", "--dir", tmp_path / "nowhere")
+    assert r.returncode == 1 and "benchmarks folder not found" in r.stderr
+    _check_no_traceback(r)
