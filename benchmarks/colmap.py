@@ -21,7 +21,7 @@ Usage::
     python benchmarks/colmap.py            # 12 views at 640x480, 5 repeats, workers, Dask, memory (~7 min)
     python benchmarks/colmap.py --quick    # 6 views at 480x360, 1 repeat, no Dask, memory at one size (<1 min)
 
-Writes ``benchmarks/results/colmap.{md,json}`` (``colmap_quick.*`` with ``--quick``, git-ignored).
+Writes ``benchmarks/results/colmap.{md,json}`` (``benchmarks/results/quick/`` with ``--quick``, git-ignored).
 """
 
 from __future__ import annotations
@@ -804,7 +804,8 @@ def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--quick", action="store_true", help="6 views at 480x360, 1 repeat, no Dask, memory at one size")
     p.add_argument("--repeats", type=int, default=None, help="timed repeats (default 5, 1 with --quick)")
-    p.add_argument("--out", type=Path, default=RESULTS, help="output directory (default benchmarks/results)")
+    p.add_argument("--out", type=Path, default=None,
+                   help="output directory (default benchmarks/results; benchmarks/results/quick with --quick)")
     p.add_argument("--keep", type=Path, default=None, help="keep the work folder (images, databases) here")
     p.add_argument("--child", nargs=3, metavar=("FOLDER", "METHOD", "WORKERS"), help=argparse.SUPPRESS)
     args = p.parse_args(argv)
@@ -852,8 +853,9 @@ def main(argv=None) -> int:
                       "accuracy": ACCURACY, "statistic": "median",
                       "ratio": AcceptRule().ratio},
            **body, "wall_time_s": time.perf_counter() - t0}
+    args.out = args.out or (RESULTS / "quick" if args.quick else RESULTS)  # --quick never overwrites the full run
     args.out.mkdir(parents=True, exist_ok=True)
-    stem = "colmap_quick" if args.quick else "colmap"  # --quick never overwrites the committed full run
+    stem = "colmap"
     (args.out / f"{stem}.json").write_text(json.dumps(res, indent=1, default=float) + "\n")
     write_markdown(args.out / f"{stem}.md", res)
     progress(f"wrote {args.out / (stem + '.md')} and {stem}.json in {res['wall_time_s']:.0f} s")

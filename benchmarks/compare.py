@@ -364,9 +364,12 @@ def main(argv=None) -> int:
                                  epilog="example: python benchmarks/compare.py --quick")
     ap.add_argument("--quick", action="store_true", help="3 poses at 320x240 + Motorcycle (under a minute)")
     ap.add_argument("--scenes", nargs="+", help=f"subset of {[s[0] for s in FULL_SCENES]}")
-    ap.add_argument("--out", type=Path, default=Path(__file__).resolve().parent / "results")
+    ap.add_argument("--out", type=Path, default=None,
+                    help="output folder (default benchmarks/results; benchmarks/results/quick with --quick)")
     ap.add_argument("--quiet", action="store_true")
     args = ap.parse_args(argv)
+    if args.out is None:  # --quick never overwrites the committed full run (or its figures)
+        args.out = Path(__file__).resolve().parent / "results" / ("quick" if args.quick else "")
     known_names = [s[0] for s in FULL_SCENES]
     names = args.scenes or (QUICK_SCENES if args.quick else known_names)
     unknown = sorted(set(names) - set(known_names))
@@ -380,18 +383,11 @@ def main(argv=None) -> int:
     results = [run_scene(n, pose, tol, args.quick, args.out, progress) for n, pose, tol in FULL_SCENES if n in names]
     seconds = time.perf_counter() - t0
     meta = machine_metadata()
-    stem = "compare_quick" if args.quick else "compare"
+    stem = "compare"
     (args.out / f"{stem}.json").write_text(json.dumps({"meta": meta, "command": command, "seconds": seconds,
                                                        "episeg_cv": episeg_cv.__version__, "results": results},
                                                       indent=1, default=float))
-    if args.quick:  # keep the committed full report; the quick one goes beside it
-        tmp = args.out / "_quick"
-        tmp.mkdir(exist_ok=True)
-        write_report(results, tmp, command, meta, seconds)
-        (tmp / "compare.md").replace(args.out / "compare_quick.md")
-        tmp.rmdir()
-    else:
-        write_report(results, args.out, command, meta, seconds)
+    write_report(results, args.out, command, meta, seconds)
     print(f"wrote {args.out / (stem + '.md')} and {args.out / (stem + '.json')}")
     return 0
 

@@ -488,7 +488,8 @@ def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--quick", action="store_true", help="one pose (forward), n = 2k and 5k")
     p.add_argument("--repeats", type=int, default=REPEATS, help=f"timed repeats per method (default {REPEATS})")
-    p.add_argument("--out", type=Path, default=RESULTS, help="output directory (default benchmarks/results)")
+    p.add_argument("--out", type=Path, default=None,
+                   help="output directory (default benchmarks/results; benchmarks/results/quick with --quick)")
     # for the smoke test and experiments
     p.add_argument("--sizes", type=_sizes, default=None, help=argparse.SUPPRESS)
     p.add_argument("--poses", type=lambda s: tuple(s.split(",")), default=None, help=argparse.SUPPRESS)
@@ -534,8 +535,9 @@ def main(argv=None) -> int:
     }
     res["targets"] = targets(results)
     res["wall_time_s"] = time.perf_counter() - t_start
+    args.out = args.out or (RESULTS / "quick" if args.quick else RESULTS)  # --quick never overwrites the full run
     args.out.mkdir(parents=True, exist_ok=True)
-    stem = "speed_quick" if args.quick else "speed"  # --quick never overwrites the committed full run
+    stem = "speed"
     (args.out / f"{stem}.json").write_text(json.dumps(res, indent=2) + "\n")
     write_markdown(args.out / f"{stem}.md", res)
     progress(f"wrote {args.out / (stem + '.md')} and {stem}.json in {res['wall_time_s']:.0f} s")

@@ -7,13 +7,14 @@ what was expected, and what was given. None of them uses ``assert``.
 
 from __future__ import annotations
 
+import logging
 import numbers
 
 import cv2
 import numpy as np
 
-#: Tolerance for ``R`` being a rotation: ``|R^T R - I|`` and ``|det R - 1|``.
-ROTATION_ATOL = 1e-6
+#: Orthonormality error ``|R^T R - I|`` (and ``|det R - 1|``) below which ``R`` is used as given.
+ROTATION_ATOL = 1e-9
 
 
 def _shape_str(shape) -> str:
@@ -52,24 +53,56 @@ def as_points(x, name: str) -> np.ndarray:
 
 
 def as_camera_matrix(K, name: str) -> np.ndarray:
-    """Check an intrinsic matrix: finite ``(3, 3)``, upper triangular, last row ``[0, 0, 1]``, invertible."""
+    """Check an intrinsic matrix: finite ``(3, 3)``, upper triangular, last row ``[0, 0, 1]``, positive
+    focal lengths, and well conditioned (condition number at most 1e12)."""
     K = as_array(K, name, (3, 3))
     if K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or K[2, 2] != 1:
-        raise ValueError(f"{name} must be upper triangular with last row [0, 0, 1], got\n{K}")
-    if K[0, 0] == 0 or K[1, 1] == 0 or not np.isfinite(np.linalg.cond(K)) or np.linalg.cond(K) > 1e12:
-        raise ValueError(f"{name} must be invertible (non-zero focal lengths), got\n{K}")
+        raise ValueError(f"{name} must be upper triangular with last row [0, 0, 1], got {_inline(K)}")
+    if not (K[0, 0] > 0 and K[1, 1] > 0):
+        raise ValueError(f"{name} must have positive focal lengths K[0, 0] and K[1, 1] (pixels), "
+                         f"got {K[0, 0]:g} and {K[1, 1]:g}")
+    cond = np.linalg.cond(K)
+    if not np.isfinite(cond) or cond > 1e12:
+        raise ValueError(f"{name} is numerically singular (condition number {cond:.2g} > 1e12): focal lengths "
+                         f"{K[0, 0]:g}, {K[1, 1]:g}, skew {K[0, 1]:g} and principal point ({K[0, 2]:g}, {K[1, 2]:g}) "
+                         "differ by too many orders of magnitude")
     return K
 
 
+def _inline(a: np.ndarray) -> str:
+    return np.array2string(np.asarray(a), separator=", ", max_line_width=10**6).replace("\n", "")
+
+
+#: Largest orthonormality error ``max |R^T R - I|`` that is treated as rounding and repaired.
+ROTATION_REPAIR_ATOL = 1e-3
+
+_log = logging.getLogger("episeg_cv")
+
+
 def as_rotation(R, name: str) -> np.ndarray:
-    """Check a rotation matrix: orthonormal with determinant +1, within :data:`ROTATION_ATOL`."""
+    """Check a rotation matrix, repairing the rounding of real calibration files.
+
+    ``R`` must be orthonormal with determinant +1. Files written with a few
+    decimals (or float32) are not exactly orthonormal: up to an error
+    ``max |R^T R - I|`` of :data:`ROTATION_REPAIR_ATOL` (1e-3) ``R`` is replaced
+    by the nearest rotation (the polar factor of its SVD), and the repair is
+    logged at INFO level on the ``episeg_cv`` logger (``episeg -v`` shows it).
+    A larger error, or a reflection, is refused.
+    """
     R = as_array(R, name, (3, 3))
-    err = np.abs(R.T @ R - np.eye(3)).max()
-    if err > ROTATION_ATOL:
-        raise ValueError(f"{name} must be a rotation matrix (R.T @ R = I within {ROTATION_ATOL}), got error {err:.3g}")
+    err = float(np.abs(R.T @ R - np.eye(3)).max())
+    if err > ROTATION_REPAIR_ATOL:
+        raise ValueError(f"{name} must be a rotation matrix (R.T @ R = I within {ROTATION_REPAIR_ATOL:g}), "
+                         f"got error {err:.3g}")
     det = np.linalg.det(R)
-    if abs(det - 1.0) > ROTATION_ATOL:
-        raise ValueError(f"{name} must be a rotation matrix with det +1, got det {det:.6g}")
+    if not det > 0:
+        raise ValueError(f"{name} must be a rotation matrix with det +1, got det {det:.6g} (a reflection)")
+    if err > ROTATION_ATOL or abs(det - 1.0) > ROTATION_ATOL:
+        U, _, Vt = np.linalg.svd(R)
+        fixed = np.ascontiguousarray(U @ Vt)
+        _log.info("%s was not orthonormal (error %.2g, det %.9g): replaced by the nearest rotation (it moved by %.2g)",
+                  name, err, det, float(np.abs(fixed - R).max()))
+        R = fixed
     return R
 
 
@@ -203,8 +236,13 @@ def as_descriptor_pair(descriptors1, descriptors2, norm: str, names=("descriptor
                 d = d.astype(np.uint8)
         if d.ndim != 2:
             raise ValueError(f"{name} must have shape (N, D), got shape {d.shape}")
-        if d.dtype != np.uint8 and d.size and not _all_finite(d):
-            raise ValueError(f"{name} must be finite, got NaN or inf")
+        if d.dtype != np.uint8 and d.size:
+            if not _all_finite(d):
+                raise ValueError(f"{name} must be finite, got NaN or inf")
+            big = max(abs(float(d.min())), abs(float(d.max())))
+            if d.dtype == np.float64 and big > _FLOAT32_SAFE:
+                raise ValueError(f"{name} must fit in float32 (distances are computed in float32, as cv2 does), "
+                                 f"got a value of magnitude {big:.3g}")
         out.append(d)
     d1, d2 = out
     if d1.shape[0] and d2.shape[0]:
@@ -216,6 +254,11 @@ def as_descriptor_pair(descriptors1, descriptors2, norm: str, names=("descriptor
         if d.shape[0] and norm == "hamming" and d.dtype != np.uint8:
             raise TypeError(f"{name}: NORM_HAMMING needs uint8 (binary) descriptors, got {d.dtype}")
     return d1, d2
+
+
+#: Largest descriptor magnitude accepted in float64: squared distances of 128-dimensional float32
+#: descriptors stay finite below it.
+_FLOAT32_SAFE = 1e17
 
 
 def _all_finite(d: np.ndarray) -> bool:

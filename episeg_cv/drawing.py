@@ -19,6 +19,7 @@ import numpy as np
 
 from ._validation import as_points
 from .geometry import EpipolarSegments
+from .io.paths import output_file
 
 __all__ = ["COLORS", "draw_segments", "draw_points", "draw_segment_figure", "draw_matches", "save_image"]
 
@@ -448,11 +449,18 @@ def save_image(path, image) -> Path:
     pathlib.Path
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.haveImageWriter(str(path)):
+        raise ValueError(f"image {str(path)!r}: OpenCV cannot write the extension {path.suffix!r} "
+                         "(use .png, .jpg, .tif, ...)")
+    path = output_file(path, "image")
     try:
-        ok = cv2.imwrite(str(path), np.asarray(image))
+        ok, data = cv2.imencode(path.suffix, np.asarray(image))
     except cv2.error as exc:
-        raise OSError(f"cannot write image {path}: {str(exc).strip().splitlines()[-1]}") from None
+        raise ValueError(f"cannot encode image {str(path)!r}: {str(exc).strip().splitlines()[-1]}") from None
     if not ok:
-        raise OSError(f"cannot write image {path} (unknown or unsupported extension?)")
+        raise ValueError(f"cannot encode image {str(path)!r} as {path.suffix}")
+    try:
+        path.write_bytes(data.tobytes())
+    except OSError as exc:
+        raise OSError(f"cannot write image {str(path)!r}: {exc.strerror}") from None
     return path

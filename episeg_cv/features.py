@@ -28,6 +28,9 @@ __all__ = ["DETECTORS", "FeatureConfig", "PRESETS", "create_detector", "detect_f
 #: Detector name -> descriptor norm. SIFT is float32 / L2, ORB and AKAZE are binary / Hamming.
 DETECTORS = {"sift": "l2", "orb": "hamming", "akaze": "hamming"}
 
+#: The largest ``max_features`` OpenCV's detectors take (a C ``int``).
+MAX_FEATURES = 2**31 - 1
+
 #: Descriptor width of each detector (for empty results).
 _WIDTHS = {"sift": 128, "orb": 32, "akaze": 61}
 
@@ -59,6 +62,8 @@ class FeatureConfig:
     def __post_init__(self):
         as_choice(self.detector, "detector", tuple(DETECTORS))
         object.__setattr__(self, "max_features", as_positive_int(self.max_features, "max_features"))
+        if self.max_features > MAX_FEATURES:
+            raise ValueError(f"max_features must be at most {MAX_FEATURES} (OpenCV's int), got {self.max_features}")
 
     @property
     def norm(self) -> str:

@@ -84,7 +84,13 @@ def depth_range_arg(values) -> tuple[float, float]:
 
 
 def add_verbosity(parser: argparse.ArgumentParser) -> None:
-    """``-q`` / ``--quiet`` and ``-v`` / ``--verbose``, exclusive."""
+    """``-q`` / ``--quiet`` and ``-v`` / ``--verbose``, exclusive.
+
+    Added to the main parser and to every command, so that they work before or after the
+    command's name; with no default (``SUPPRESS``), a command's parser does not reset a value
+    the main parser set.
+    """
     g = parser.add_mutually_exclusive_group()
-    g.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors")
-    g.add_argument("-v", "--verbose", action="store_true", help="more detail on stderr")
+    g.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS, help="print nothing but errors")
+    g.add_argument("-v", "--verbose", action="store_true", default=argparse.SUPPRESS,
+                   help="more detail on stderr (settings, repairs of rounded calibrations, timings)")

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -11,6 +10,7 @@ from .. import __version__
 from ..features import FeatureConfig, detect_features
 from ..geometry import Rejection, TwoViewGeometry
 from ..io import load_calibration
+from ..io.paths import input_file
 from ..matching import AcceptRule, SearchConfig, explain_pairs
 from ..opencv import SegmentMatcher, pairs_of
 from .console import Console, UserError
@@ -24,9 +24,7 @@ MAX_LINES = 300
 
 def read_image(path) -> np.ndarray:
     """A grey image, or a one-line error naming the file."""
-    p = Path(path)
-    if not p.is_file():
-        raise UserError(f"image not found: {p}")
+    p = input_file(path, "image")
     img = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
     if img is None:
         raise UserError(f"cannot read image {p} (not an image format OpenCV can decode)")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 
 from .. import __version__
@@ -26,6 +27,7 @@ def build_parser() -> argparse.ArgumentParser:
                "  episeg segments left.png right.png --calib calib.json --random 12\n\n"
                "Run 'episeg COMMAND --help' for the options of each command.")
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    add_verbosity(parser)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for command in COMMANDS:
         command.add_parser(sub, [common])
@@ -42,13 +44,22 @@ def main(argv=None) -> int:
     """
     parser = build_parser()
     args = parser.parse_args(argv)
-    console = Console(args.quiet, args.verbose)
+    quiet, verbose = getattr(args, "quiet", False), getattr(args, "verbose", False)
+    console = Console(quiet, verbose)
+    log = logging.getLogger("episeg_cv")
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter(f"{PROG}: %(message)s"))
+    handler.setLevel(logging.INFO if verbose and not quiet else logging.WARNING)
+    log.addHandler(handler)  # the library's notes (e.g. a rounded rotation repaired) as 'episeg: ...' lines
+    level = log.level
+    if verbose and not quiet:
+        log.setLevel(logging.INFO)
     try:
         return int(args.func(args, console) or 0)
     except (UserError, ValueError, TypeError, OSError) as exc:
         # user errors: a missing file, a bad calibration, an unreadable image, bad values
         print(f"{PROG}: error: {one_line(exc)}", file=sys.stderr, flush=True)
-        if args.verbose and not isinstance(exc, (UserError, FileNotFoundError)):
+        if verbose and not isinstance(exc, (UserError, FileNotFoundError)):
             import traceback
 
             traceback.print_exc()
@@ -56,3 +67,6 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print(f"{PROG}: interrupted", file=sys.stderr)
         return 130
+    finally:
+        log.removeHandler(handler)
+        log.setLevel(level)

@@ -30,6 +30,7 @@ import numpy as np
 from .._validation import as_camera_matrix, as_image_size, as_rotation, as_vector3
 from ..distortion import as_distortion
 from ..geometry import TwoViewGeometry, as_geometry
+from .paths import input_file, output_file
 
 __all__ = ["Calibration", "load_calibration", "save_calibration"]
 
@@ -219,20 +220,21 @@ def load_calibration(path, image_size1=None, image_size2=None) -> Calibration:
     >>> c.image_size1, c.has_distortion, c.geometry.image_size2
     ((640, 480), False, (640, 480))
     """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"calibration file not found: {path}")
+    path = input_file(path, "calibration file")
     name = path.name
     if path.suffix.lower() == ".json":
         try:
-            data = json.loads(path.read_text())
+            data = json.loads(path.read_text(encoding="utf-8-sig"))
+            if isinstance(data, dict):
+                data = {k: _from_opencv_json(v) for k, v in data.items()}
         except UnicodeDecodeError as exc:
             raise ValueError(f"{name}: not a text file ({exc.reason})") from None
         except json.JSONDecodeError as exc:
             raise ValueError(f"{name}: invalid JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}") from None
+        except RecursionError:
+            raise ValueError(f"{name}: JSON nested too deeply to be a calibration") from None
         if not isinstance(data, dict):
             raise ValueError(f"{name}: the top level must be a JSON object, got {type(data).__name__}")
-        data = {k: _from_opencv_json(v) for k, v in data.items()}
     else:
         data = _read_filestorage(path)
     calib = _from_mapping(data, name)
@@ -434,7 +436,7 @@ def save_calibration(path, calibration: Calibration) -> Path:
     if not isinstance(calibration, Calibration):
         raise TypeError(f"calibration must be a Calibration or a TwoViewGeometry, got {type(calibration).__name__}")
     c = calibration
-    path = Path(path)
+    path = output_file(path, "calibration file")
     if path.suffix.lower() == ".json":
         out = {"convention": "X2 = R X1 + t; pixel centres at integer coordinates; image_size = [width, height]",
                "K1": c.K1.tolist(), "K2": c.K2.tolist(), "R": c.R.tolist(), "t": c.t.tolist()}

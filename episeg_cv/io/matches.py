@@ -23,14 +23,18 @@ from __future__ import annotations
 
 import csv
 import json
+import zipfile
 from pathlib import Path
 
 import numpy as np
+
+from .paths import input_file, output_file
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "write_matches", "read_matches", "json_number"]
 
 FORMAT = "episeg-matches"
 FORMAT_VERSION = 1
+SUFFIXES = (".json", ".npz", ".csv")
 
 
 def json_number(x):
@@ -60,6 +64,9 @@ def write_matches(path, meta: dict, keypoints1, keypoints2, matches, distances, 
     pathlib.Path
     """
     path = Path(path)
+    if path.suffix.lower() not in SUFFIXES:
+        raise ValueError(f"matches file {str(path)!r} must end in .json, .npz or .csv")
+    path = output_file(path, "matches file")
     k1 = np.asarray(keypoints1, np.float64).reshape(-1, 2)
     k2 = np.asarray(keypoints2, np.float64).reshape(-1, 2)
     m = np.asarray(matches, np.int64).reshape(-1, 2)
@@ -69,8 +76,6 @@ def write_matches(path, meta: dict, keypoints1, keypoints2, matches, distances, 
         raise ValueError(f"matches, distances and labels must have the same length, got {len(m)}, {len(d)}, {len(labels)}")
     extra = extra or {}
     suffix = path.suffix.lower()
-    if path.parent != Path(""):
-        path.parent.mkdir(parents=True, exist_ok=True)
     if suffix == ".json":
         out = {"meta": meta, "keypoints1": np.round(k1, 4).tolist(), "keypoints2": np.round(k2, 4).tolist(),
                "matches": m.tolist(), "distances": [round(float(x), 5) for x in d], "labels": labels}
@@ -80,31 +85,76 @@ def write_matches(path, meta: dict, keypoints1, keypoints2, matches, distances, 
         np.savez_compressed(path, meta=np.array(json.dumps(meta)), keypoints1=k1, keypoints2=k2, matches=m,
                             distances=d.astype(np.float32), labels=np.array(labels, dtype="U16"),
                             **{k: np.asarray(v, np.float64) for k, v in extra.items()})
-    elif suffix == ".csv":
+    else:  # .csv
         with path.open("w", newline="") as f:
             w = csv.writer(f)
             w.writerow(["x1", "y1", "x2", "y2", "distance", "label"])
             for (i, j), dist, lab in zip(m, d, labels):
                 w.writerow([f"{k1[i, 0]:.4f}", f"{k1[i, 1]:.4f}", f"{k2[j, 0]:.4f}", f"{k2[j, 1]:.4f}",
                             f"{dist:.5g}", lab])
-    else:
-        raise ValueError(f"path must end in .json, .npz or .csv, got {path.name!r}")
     return path
 
 
 def read_matches(path) -> dict:
-    """Read a ``.json`` or ``.npz`` matches file back into arrays (``meta`` as a dict)."""
-    path = Path(path)
-    if path.suffix.lower() == ".npz":
-        with np.load(path) as z:
-            out = {k: z[k] for k in z.files}
-        out["meta"] = json.loads(str(out["meta"]))
-        return out
-    data = json.loads(path.read_text())
-    out = {"meta": data["meta"], "labels": np.array(data["labels"], dtype="U16"),
-           "matches": np.array(data["matches"], np.intp).reshape(-1, 2),
-           "distances": np.array(data["distances"], np.float64)}
-    for k, v in data.items():
-        if k.startswith("keypoints"):
-            out[k] = np.array(v, np.float64).reshape(-1, 2)
+    """Read a ``.json`` or ``.npz`` matches file back into arrays (``meta`` as a dict).
+
+    ``.csv`` files are for other tools (one row per match, without the
+    keypoints): they are not read back.
+
+    Raises
+    ------
+    FileNotFoundError, IsADirectoryError
+        No such file.
+    ValueError
+        Another suffix, or a file that is not a matches file (unparseable, or a key missing or
+        of the wrong shape), named with the key.
+    """
+    path = input_file(path, "matches file")
+    suffix = path.suffix.lower()
+    if suffix == ".csv":
+        raise ValueError(f"matches file {str(path)!r}: .csv files are not read back (no keypoints in them); "
+                         "write .json or .npz to read the matches again")
+    if suffix not in (".json", ".npz"):
+        raise ValueError(f"matches file {str(path)!r} must end in .json or .npz")
+    try:
+        if suffix == ".npz":
+            with np.load(path, allow_pickle=False) as z:
+                data = {k: z[k] for k in z.files}
+            data["meta"] = json.loads(str(data["meta"])) if "meta" in data else None
+        else:
+            data = json.loads(path.read_text(encoding="utf-8"))
+    except (ValueError, OSError, EOFError, RecursionError, zipfile.BadZipFile, UnicodeDecodeError) as exc:
+        raise ValueError(f"matches file {str(path)!r} cannot be read: {type(exc).__name__}: "
+                         f"{' '.join(str(exc).split())[:200]}") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"matches file {str(path)!r}: the top level must be an object, got {type(data).__name__}")
+    missing = [k for k in ("meta", "keypoints1", "keypoints2", "matches", "distances", "labels") if k not in data]
+    if missing:
+        raise ValueError(f"matches file {str(path)!r} is not an episeg matches file: missing {', '.join(missing)}")
+    out = {"meta": data["meta"]}
+    try:
+        for k, v in data.items():
+            if k.startswith("keypoints"):
+                out[k] = _array(v, np.float64, (-1, 2))
+        out["matches"] = _array(data["matches"], np.intp, (-1, 2))
+        out["distances"] = _array(data["distances"], np.float64, (-1,))
+        out["labels"] = np.asarray(data["labels"], dtype="U16").reshape(-1)
+    except (ValueError, TypeError, OverflowError, RecursionError) as exc:
+        raise ValueError(f"matches file {str(path)!r}: {' '.join(str(exc).split())[:200]}") from None
+    n = len(out["matches"])
+    if not len(out["distances"]) == len(out["labels"]) == n:
+        raise ValueError(f"matches file {str(path)!r}: matches, distances and labels must have the same length, "
+                         f"got {n}, {len(out['distances'])}, {len(out['labels'])}")
+    for col, key in ((0, "keypoints1"), (1, "keypoints2")):
+        if n and (out["matches"][:, col].min() < 0 or out["matches"][:, col].max() >= len(out[key])):
+            raise ValueError(f"matches file {str(path)!r}: a match indexes past the {len(out[key])} {key}")
     return out
+
+
+def _array(value, dtype, shape) -> np.ndarray:
+    arr = np.asarray(value, dtype=dtype)
+    if arr.size == 0:
+        return arr.reshape((0,) + shape[1:])
+    if arr.ndim != len(shape) or (len(shape) == 2 and arr.shape[1] != shape[1]):
+        raise ValueError(f"expected an array of shape {('N',) + shape[1:]}, got shape {arr.shape}")
+    return arr

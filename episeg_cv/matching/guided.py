@@ -126,6 +126,8 @@ def _guided_search(search: SearchConfig) -> SearchConfig:
 def knn(inputs: MatchInputs, geometry: TwoViewGeometry, search: SearchConfig, k: int) -> Neighbors:
     """:func:`knn_descriptors` on checked inputs."""
     index = CandidateIndex.build(geometry, inputs.points1, inputs.points2, _guided_search(search))
+    if k > 2:  # no query has more neighbours than candidates: the (N1, k) arrays need no more columns
+        k = max(1, min(k, int(index.candidate_counts().max(initial=0))))
     res = _scan(index, inputs.distances, k)
     i, col = np.nonzero(res.indices >= 0)
     dist = np.full(res.indices.shape, np.inf, dtype=np.float32)
@@ -228,7 +230,9 @@ def knn_descriptors(descriptors1, descriptors2, points1, points2, geometry, *, k
     Returns
     -------
     Neighbors
-        ``indices`` and ``distances`` of shape ``(N1, k)``, nearest first.
+        ``indices`` and ``distances`` of shape ``(N1, k')``, nearest first, with ``k'`` the
+        smaller of ``k`` and the largest number of candidates of any query (so that a huge
+        ``k`` costs no memory).
 
     Raises
     ------

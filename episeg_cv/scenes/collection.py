@@ -12,7 +12,10 @@ from .model import look_at, make_room_scene
 from .render import render
 from .suite import SUITE_IMAGE_SIZE, intrinsics_for, scale_intrinsics
 
-__all__ = ["PosedCollection", "collection_poses", "make_collection"]
+__all__ = ["PosedCollection", "collection_poses", "make_collection", "MAX_HELD_BYTES"]
+
+#: The most memory a :class:`PosedCollection` may hold (its images and depth maps).
+MAX_HELD_BYTES = 4 * 2**30
 
 
 @dataclass(frozen=True, eq=False)
@@ -112,6 +115,11 @@ def make_collection(n_views: int = 12, image_size=SUITE_IMAGE_SIZE, seed: int = 
     (3, (48, 64), (3, 3, 3))
     """
     size = as_image_size(image_size, "image_size")
+    held = int(n_views) * size[0] * size[1] * 9  # an image (uint8) and a depth map (float64) per view
+    if held > MAX_HELD_BYTES:
+        raise ValueError(f"n_views = {n_views} at {size[0]}x{size[1]} would hold {held / 2**30:.1f} GiB of images and "
+                         f"depth maps in memory (at most {MAX_HELD_BYTES / 2**30:.0f} GiB); use fewer views or a "
+                         "smaller image_size")
     R, t = collection_poses(n_views)
     centers = [-Ri.T @ ti for Ri, ti in zip(R, t)]
     scene = make_room_scene(rng=seed, keep_clear=centers, clearance=0.9)

@@ -19,6 +19,9 @@ __all__ = ["render"]
 
 EDGE_EPS = 1e-9  # inclusive inside test, so that adjacent quads leave no cracks
 
+#: Most samples (pixels x supersample^2) one render takes; a bound on its memory (about 150 bytes each).
+MAX_SAMPLES = 2**26
+
 
 def _clip_bbox(P_cam: np.ndarray, K: np.ndarray, xs: np.ndarray, ys: np.ndarray, near: float):
     """Index ranges of the sample grid that the polygon ``P_cam`` (camera coords) can cover."""
@@ -215,6 +218,9 @@ def render(scene: Scene, K, R, t, image_size, supersample: int = 2) -> tuple[np.
     if isinstance(supersample, (bool, np.bool_)) or not isinstance(supersample, (int, np.integer)) or supersample < 1:
         raise ValueError(f"supersample must be an int >= 1, got {supersample!r}")
     s = int(supersample)
+    if w * h * s * s > MAX_SAMPLES:
+        raise ValueError(f"image_size {w}x{h} with supersample {s} is {w * h * s * s:,} samples per image; at most "
+                         f"{MAX_SAMPLES:,} are rendered (about {MAX_SAMPLES * 150 // 2**30} GiB of work memory)")
     xs = (np.arange(w * s) + 0.5) / s - 0.5
     ys = (np.arange(h * s) + 0.5) / s - 0.5
     iz, qid, ub, vb = _raycast(scene, K, R, t, xs, ys)

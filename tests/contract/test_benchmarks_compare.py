@@ -15,11 +15,11 @@ def test_compare_quick_produces_sane_tables(tmp_path):
     out = subprocess.run([sys.executable, str(SCRIPT), "--quick", "--quiet", "--scenes", "forward", "motorcycle",
                           "--out", str(tmp_path)], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
-    md = (tmp_path / "compare_quick.md").read_text()
+    md = (tmp_path / "compare.md").read_text()
     for heading in ("## Per scene", "## Summary over all scenes", "## Choosing the acceptance rule",
                     "## Outliers surviving", "## Search space"):
         assert heading in md
-    data = json.loads((tmp_path / "compare_quick.json").read_text())
+    data = json.loads((tmp_path / "compare.json").read_text())
     assert [r["scene"] for r in data["results"]] == ["forward", "motorcycle"]
     for res in data["results"]:
         assert res["matchable"] > 50

@@ -1,4 +1,4 @@
-"""Smoke test of benchmarks/speed.py: a tiny run writes a parseable speed_quick.md and speed_quick.json.
+"""Smoke test of benchmarks/speed.py: a tiny run writes a parseable speed.md and speed.json.
 
 No timing is asserted (benchmarks are not tests); only that the script runs end to end
 and that what it writes is complete and positive.
@@ -32,7 +32,7 @@ def tiny_run(speed, tmp_path_factory):
 def test_tiny_run_writes_markdown_and_json(speed, tiny_run):
     rc, out = tiny_run
     assert rc == 0
-    res = json.loads((out / "speed_quick.json").read_text())
+    res = json.loads((out / "speed.json").read_text())
     assert res["command"].startswith("python benchmarks/speed.py --quick --sizes 150,300")
     assert res["machine"]["cv2"] and res["machine"]["cpu_count"] >= 1
     assert list(res["poses"]) == ["forward"]
@@ -57,7 +57,7 @@ def test_tiny_run_writes_markdown_and_json(speed, tiny_run):
     assert b["output_size"]["BFMatcher knnMatch(k=2) (reference)"] > 0
     assert set(b["line_vs_segment"]) == {"match", "knnMatch(k=2)"}
 
-    md = (out / "speed_quick.md").read_text()
+    md = (out / "speed.md").read_text()
     assert res["command"] in md
     assert "## Pose `forward`" in md and "| method | n = 150 | n = 300 | exponent |" in md
     assert "Not evaluated" in md

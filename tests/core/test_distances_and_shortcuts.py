@@ -196,7 +196,7 @@ def test_match_returns_dmatch_with_img_idx_zero():
 
 
 def test_finiteness_check_on_huge_finite_values():
-    big = np.full((3, 4), 1e308)  # finite, but its float64 sum overflows
+    big = np.full((3, 4), 3e38, np.float32)  # finite, but its sum overflows
     d1, d2 = as_descriptor_pair(big, big, "l2")
     assert d1 is not None and d2.shape == (3, 4)
     for bad in (np.nan, np.inf, -np.inf):
@@ -208,6 +208,14 @@ def test_finiteness_check_on_huge_finite_values():
         y[2, 3] = bad
         with pytest.raises(ValueError, match="descriptors2"):
             as_descriptor_pair(np.zeros((3, 4), np.float32), y, "l2")
+
+
+def test_float64_descriptors_beyond_float32_are_refused():
+    """Distances are computed in float32 (as cv2 does): 1e308 would silently give no match at all."""
+    with pytest.raises(ValueError, match="descriptors1 must fit in float32"):
+        as_descriptor_pair(np.full((3, 4), 1e308), np.ones((3, 4)), "l2")
+    d1, _ = as_descriptor_pair(np.full((3, 4), 1e6), np.ones((3, 4)), "l2")  # large but fine
+    assert d1.dtype == np.float64
 
 
 @pytest.mark.parametrize("constraint", ["segment", "line"])

@@ -124,5 +124,11 @@ def test_bad_images_and_saving(tmp_path):
         draw_segments(np.zeros((10, 10), np.uint8), [[1.0, 1.0]])
     p = save_image(tmp_path / "sub" / "fig.png", np.zeros((5, 5, 3), np.uint8))
     assert p.is_file()
-    with pytest.raises(OSError, match="cannot write image"):
+    with pytest.raises(ValueError, match="cannot write the extension '.unknown_ext'"):
         save_image(tmp_path / "fig.unknown_ext", np.zeros((5, 5, 3), np.uint8))
+    # file-system errors say what they are (not "unknown extension")
+    with pytest.raises(IsADirectoryError, match="is a folder"):
+        save_image(tmp_path / "sub.png" if (tmp_path / "sub.png").mkdir() is None else None, np.zeros((5, 5), np.uint8))
+    (tmp_path / "afile").write_text("x")
+    with pytest.raises(NotADirectoryError, match="'.*afile' is a file"):
+        save_image(tmp_path / "afile" / "fig.png", np.zeros((5, 5), np.uint8))

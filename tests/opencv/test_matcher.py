@@ -434,9 +434,17 @@ def test_knn_lists_shorter_than_k(k):
     radius = SegmentMatcher(g).radiusMatch(d1, d2, kp1, kp2, 1e6)
     assert [len(r) for r in radius] == [1, 2, 0]
     res = knn_descriptors(d1, d2, pts(kp1), pts(kp2), g, k=k)
-    assert res.indices.shape == (3, k)
+    assert res.indices.shape == (3, min(k, 2))  # no more columns than the largest candidate count
     assert (res.indices[2] == -1).all() and np.isinf(res.distances[2]).all()
     np.testing.assert_array_equal(res.counts, [1, 2, 0])
+
+
+def test_huge_k_costs_no_memory():
+    """knnMatch(k=10**9) must not allocate N1 x k: the lists are as long as the candidates."""
+    g, kp1, kp2, d1, d2 = small_problem()
+    got = SegmentMatcher(g).knnMatch(d1, d2, kp1, kp2, 10**9)
+    assert [len(r) for r in got] == [1, 2, 0]
+    assert knn_descriptors(d1, d2, pts(kp1), pts(kp2), g, k=10**9).indices.shape == (3, 2)
 
 
 def test_lone_candidate_and_padding():

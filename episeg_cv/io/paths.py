@@ -1,0 +1,65 @@
+"""Paths the library writes to: clear one-line errors before anything is written."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+__all__ = ["output_file", "output_folder", "input_file"]
+
+
+def _first_file_on_the_way(folder: Path) -> Path | None:
+    for p in [folder, *folder.parents]:
+        if p.exists():
+            return None if p.is_dir() else p
+    return None
+
+
+def output_file(path, what: str) -> Path:
+    """``path`` as a :class:`~pathlib.Path` for a file to write, its folder created.
+
+    Raises ``OSError`` naming ``what`` when ``path`` is a folder, when a file stands
+    where a folder of the path should be, or when the folder cannot be created or
+    written to.
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise IsADirectoryError(f"{what} {str(path)!r} is a folder, expected a file path")
+    parent = path.parent
+    blocker = _first_file_on_the_way(parent)
+    if blocker is not None:
+        raise NotADirectoryError(f"{what} {str(path)!r}: {str(blocker)!r} is a file, so it cannot be a folder")
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OSError(f"{what} {str(path)!r}: cannot create the folder {str(parent)!r} ({exc.strerror})") from None
+    if not os.access(parent, os.W_OK) or (path.exists() and not os.access(path, os.W_OK)):
+        raise PermissionError(f"{what} {str(path)!r} is not writable")
+    return path
+
+
+def output_folder(path, what: str) -> Path:
+    """``path`` as a folder to write into, created; ``OSError`` naming ``what`` when a file is in the way."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise NotADirectoryError(f"{what} {str(path)!r} is a file, expected a folder")
+    blocker = _first_file_on_the_way(path)
+    if blocker is not None:
+        raise NotADirectoryError(f"{what} {str(path)!r}: {str(blocker)!r} is a file, so it cannot be a folder")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OSError(f"{what} {str(path)!r}: cannot create the folder ({exc.strerror})") from None
+    if not os.access(path, os.W_OK):
+        raise PermissionError(f"{what} {str(path)!r} is not writable")
+    return path
+
+
+def input_file(path, what: str) -> Path:
+    """``path`` of an existing regular file; ``FileNotFoundError`` or ``IsADirectoryError`` naming ``what``."""
+    path = Path(path)
+    if path.is_dir():
+        raise IsADirectoryError(f"{what} {str(path)!r} is a folder, expected a file")
+    if not path.is_file():
+        raise FileNotFoundError(f"{what} not found: {path}")
+    return path
