@@ -19,7 +19,7 @@ import numpy as np
 
 from ._validation import as_points
 from .geometry import EpipolarSegments
-from .io.paths import output_file
+from .io.paths import output_file, written_atomically
 
 __all__ = ["COLORS", "draw_segments", "draw_points", "draw_segment_figure", "draw_matches", "save_image"]
 
@@ -460,7 +460,8 @@ def save_image(path, image) -> Path:
     if not ok:
         raise ValueError(f"cannot encode image {str(path)!r} as {path.suffix}")
     try:
-        path.write_bytes(data.tobytes())
+        with written_atomically(path) as tmp:
+            tmp.write_bytes(data.tobytes())
     except OSError as exc:
         raise OSError(f"cannot write image {str(path)!r}: {exc.strerror}") from None
     return path

@@ -7,6 +7,7 @@ import logging
 import sys
 
 from .. import __version__
+from ..interrupts import Terminated, terminate_as_interrupt
 from . import bench, colmap, demo, match, segments, synthetic
 from .args import Formatter, add_verbosity
 from .console import PROG, Console, UserError, one_line
@@ -55,7 +56,8 @@ def main(argv=None) -> int:
     if verbose and not quiet:
         log.setLevel(logging.INFO)
     try:
-        return int(args.func(args, console) or 0)
+        with terminate_as_interrupt():  # SIGTERM and SIGHUP end the run as Ctrl-C does: cleanly
+            return int(args.func(args, console) or 0)
     except (UserError, ValueError, TypeError, OSError) as exc:
         # user errors: a missing file, a bad calibration, an unreadable image, bad values
         print(f"{PROG}: error: {one_line(exc)}", file=sys.stderr, flush=True)
@@ -64,8 +66,11 @@ def main(argv=None) -> int:
 
             traceback.print_exc()
         return 1
+    except Terminated as exc:
+        print(f"{PROG}: {exc.args[0]}; nothing half-written was left", file=sys.stderr, flush=True)
+        return 128 + exc.signum
     except KeyboardInterrupt:
-        print(f"{PROG}: interrupted", file=sys.stderr)
+        print(f"{PROG}: interrupted; nothing half-written was left", file=sys.stderr, flush=True)
         return 130
     finally:
         log.removeHandler(handler)

@@ -1,23 +1,45 @@
-"""The COLMAP database: prepared under a temporary name, then one transaction per pair (one writer)."""
+"""The COLMAP database: prepared under a temporary name, then one transaction per pair (one writer).
+
+Beside COLMAP's own tables, the database holds a small table ``episeg_run``
+(COLMAP ignores it): the settings of the run that wrote it and the content
+hash of every image. ``resume`` compares them with the new run and refuses a
+database written with other settings or from other images, saying what
+changed, so that one database never mixes two runs. While a run writes a
+database it holds an exclusive lock on it (``flock``): a second run on the
+same database is refused.
+"""
 
 from __future__ import annotations
 
 import contextlib
+import json
 import os
-import signal
-import threading
+import sqlite3
 from pathlib import Path
 
 import numpy as np
 
+from ..interrupts import interrupts_deferred
 from .store import FeatureStore
 from .views import View, require_pycolmap
 
-__all__ = ["check_database_path", "create_database", "check_resumable", "write_pair", "interrupts_deferred",
-           "read_database_matches"]
+try:
+    import fcntl
+except ImportError:  # pragma: no cover - not on Windows
+    fcntl = None
+
+__all__ = ["check_database_path", "create_database", "check_resumable", "write_pair", "read_database_matches",
+           "database_lock", "RUN_TABLE", "read_run_record", "remove_stale_partials"]
+
+#: The table holding the run record (settings and image hashes).
+RUN_TABLE = "episeg_run"
+_SQLITE_MAGIC = b"SQLite format 3\x00"
+_SIDE_FILES = ("", "-wal", "-shm", "-journal")
 
 
 def check_database_path(database, resume: bool, overwrite: bool) -> Path:
+    """The database path, checked before any work: a file path in a writable folder, and
+    existing exactly when ``resume`` (or ``overwrite``) says so."""
     path = Path(database)
     if resume and overwrite:
         raise ValueError("resume and overwrite exclude each other")
@@ -32,17 +54,93 @@ def check_database_path(database, resume: bool, overwrite: bool) -> Path:
         raise ValueError(f"database {str(path)!r} exists; pass --overwrite to replace it or --resume to continue it")
     if resume and not path.exists():
         raise ValueError(f"database {str(path)!r} does not exist; nothing to resume")
+    if resume:
+        with open(path, "rb") as f:
+            if f.read(len(_SQLITE_MAGIC)) != _SQLITE_MAGIC:
+                raise ValueError(f"database {str(path)!r} is not a COLMAP database (not an SQLite file)")
     return path
 
 
-def create_database(path: Path, rec, views, store: FeatureStore) -> None:
-    """Cameras, rigs, frames, images and keypoints, written under a temporary name, then renamed.
+@contextlib.contextmanager
+def database_lock(path: Path):
+    """Hold an exclusive lock on the database file ``path`` for the block; ``ValueError`` when another
+    run holds it. (Nothing to lock where ``fcntl`` does not exist.)"""
+    if fcntl is None:
+        yield
+        return
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise ValueError(f"database {str(path)!r} is being written by another run; wait for it to end") from None
+        yield
+    finally:
+        os.close(fd)
+
+
+def _partial_name(path: Path, pid: int) -> Path:
+    return path.with_name(f".{path.name}.{pid}.partial")
+
+
+def _remove_with_side_files(path: Path) -> None:
+    for suffix in _SIDE_FILES:
+        Path(f"{path}{suffix}").unlink(missing_ok=True)
+
+
+def remove_stale_partials(path: Path) -> list:
+    """Remove what runs killed while preparing ``path`` left behind (``.NAME.PID.partial`` and its
+    ``-wal``/``-shm``/``-journal`` files, when process PID no longer exists); the paths removed."""
+    removed = []
+    for tmp in path.parent.glob(f".{path.name}.*.partial"):
+        pid = tmp.name[len(path.name) + 2:-len(".partial")]
+        if not pid.isdigit() or int(pid) == os.getpid():
+            continue
+        try:
+            os.kill(int(pid), 0)
+            continue  # that run is still alive
+        except ProcessLookupError:
+            pass
+        except PermissionError:
+            continue  # alive, another user's
+        _remove_with_side_files(tmp)
+        removed.append(tmp)
+    return removed
+
+
+def _write_run_record(path: Path, record: dict) -> None:
+    con = sqlite3.connect(path)
+    try:
+        with con:
+            con.execute(f"CREATE TABLE IF NOT EXISTS {RUN_TABLE} (key TEXT PRIMARY KEY, value TEXT NOT NULL)")
+            con.executemany(f"INSERT OR REPLACE INTO {RUN_TABLE} VALUES (?, ?)",
+                            [(k, json.dumps(v, sort_keys=True)) for k, v in record.items()])
+    finally:
+        con.close()
+
+
+def read_run_record(path) -> dict | None:
+    """The run record of a database (``{"settings": ..., "images": {name: sha256}}``), or None."""
+    con = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
+    try:
+        rows = con.execute(f"SELECT key, value FROM {RUN_TABLE}").fetchall()
+    except sqlite3.DatabaseError:
+        return None
+    finally:
+        con.close()
+    return {k: json.loads(v) for k, v in rows}
+
+
+def create_database(path: Path, rec, views, store: FeatureStore, record: dict) -> None:
+    """Cameras, rigs, frames, images, keypoints and the run record, written under a temporary name,
+    then renamed into place (so a killed run never leaves a half-written database at ``path``).
 
     Keypoints are read from ``store`` one image at a time.
     """
     pycolmap = require_pycolmap()
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.partial")
-    tmp.unlink(missing_ok=True)
+    remove_stale_partials(path)
+    tmp = _partial_name(path, os.getpid())
+    _remove_with_side_files(tmp)
     try:
         db = pycolmap.Database.open(str(tmp))
         with pycolmap.DatabaseTransaction(db):
@@ -61,24 +159,54 @@ def create_database(path: Path, rec, views, store: FeatureStore) -> None:
             for v in views:
                 db.write_keypoints(v.image_id, (store.keypoints(v) + 0.5).astype(np.float32))
         db.close()
+        _write_run_record(tmp, record)
         os.replace(tmp, path)
     finally:
-        tmp.unlink(missing_ok=True)
+        _remove_with_side_files(tmp)
 
 
-def check_resumable(path: Path, views, counts, pair_list) -> set:
-    """The pairs of ``pair_list`` already complete in ``path``; refuses a database of other images or features."""
+def _flat(d: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flat(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def _differences(stored: dict, wanted: dict) -> list:
+    a, b = _flat(stored), _flat(wanted)
+    return [f"{key} was {a.get(key)!r}, now {b.get(key)!r}" for key in sorted(set(a) | set(b)) if a.get(key) != b.get(key)]
+
+
+def check_resumable(path: Path, views, record: dict, pair_list) -> set:
+    """The pairs of ``pair_list`` already complete in ``path``.
+
+    Refuses (``ValueError``, one line saying what changed) a database without a run record, or
+    one written with other settings or from other image contents.
+    """
+    stored = read_run_record(path)
+    if stored is None or "settings" not in stored:
+        raise ValueError(f"database {str(path)!r} was not written by episeg colmap (no run record); "
+                         "pass --overwrite to replace it")
+    changed = _differences(stored["settings"], record["settings"])
+    if changed:
+        raise ValueError(f"database {str(path)!r} was written with other settings ({'; '.join(changed[:3])}); "
+                         "rerun with the same settings, or pass --overwrite to start again")
+    have, want = stored.get("images", {}), record["images"]
+    if set(have) != set(want):
+        extra = sorted(set(have) ^ set(want))
+        raise ValueError(f"database {str(path)!r} holds other images than the model (e.g. {extra[0]!r}); "
+                         "pass --overwrite to start again")
+    modified = sorted(n for n in want if have[n] != want[n])
+    if modified:
+        raise ValueError(f"image {modified[0]!r} changed since database {str(path)!r} was written"
+                         + (f" (and {len(modified) - 1} more)" if len(modified) > 1 else "")
+                         + "; its matches would no longer fit: pass --overwrite to start again")
     pycolmap = require_pycolmap()
     db = pycolmap.Database.open(str(path))
     try:
-        have = {im.image_id: im.name for im in db.read_all_images()}
-        want = {v.image_id: v.name for v in views}
-        if have != want:
-            raise ValueError(f"database {str(path)!r} holds other images than the model; use --overwrite")
-        for v, n in zip(views, counts):
-            if db.num_keypoints_for_image(v.image_id) != n:
-                raise ValueError(f"database {str(path)!r} holds other keypoints for {v.name!r} "
-                                 "(other detector settings?); use --overwrite")
         # matches and two-view geometry are written in one transaction; a pair with matches but
         # no geometry can only come from an exception inside it (pycolmap commits on exit): redo it
         done = set()
@@ -107,27 +235,6 @@ def write_pair(db, v1: View, v2: View, matches: np.ndarray, inliers: np.ndarray)
     with interrupts_deferred(), pycolmap.DatabaseTransaction(db):
         db.write_matches(v1.image_id, v2.image_id, np.ascontiguousarray(matches, dtype=np.uint32))
         db.write_two_view_geometry(v1.image_id, v2.image_id, tvg)
-
-
-@contextlib.contextmanager
-def interrupts_deferred():
-    """Hold SIGINT (Ctrl-C) until the block ends, then deliver it to the previous handler.
-
-    pycolmap's transaction commits even when an exception leaves it, so a
-    KeyboardInterrupt between two writes would commit half a pair.
-    """
-    if threading.current_thread() is not threading.main_thread() \
-            or signal.getsignal(signal.SIGINT) in (signal.SIG_IGN, None):
-        yield
-        return
-    caught = []
-    previous = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, previous)
-        if caught:
-            signal.raise_signal(signal.SIGINT)
 
 
 def read_database_matches(database) -> dict:

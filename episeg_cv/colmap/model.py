@@ -8,7 +8,8 @@ import numpy as np
 
 from .views import View, depth_range_from_depths, require_pycolmap
 
-__all__ = ["load_model", "reconstruction_from_views", "auto_depth_ranges", "views_from_reconstruction"]
+__all__ = ["load_model", "reconstruction_from_views", "auto_depth_ranges", "views_from_reconstruction",
+           "check_binary_model"]
 
 
 def views_from_reconstruction(rec) -> list[View]:
@@ -44,6 +45,7 @@ def load_model(model_dir):
         raise ValueError(f"model folder {str(path)!r} does not exist")
     if not any((path / f"images.{ext}").is_file() for ext in ("bin", "txt")):
         raise ValueError(f"model folder {str(path)!r} holds no COLMAP model (images.bin or images.txt)")
+    check_binary_model(path)
     try:
         rec = pycolmap.Reconstruction(str(path))
     except Exception as e:  # pycolmap raises several types for a broken model
@@ -52,6 +54,33 @@ def load_model(model_dir):
     if not views:
         raise ValueError(f"model {str(path)!r} has no registered images")
     return views, rec
+
+
+#: The smallest record of each binary model file, in bytes (after the uint64 record count).
+_MIN_RECORD = {"cameras.bin": 24, "images.bin": 73, "points3D.bin": 51, "rigs.bin": 16, "frames.bin": 16}
+
+
+def check_binary_model(path: Path) -> None:
+    """Refuse a binary model file that is empty or shorter than its record count says.
+
+    COLMAP reads the count first and allocates for it: an empty or truncated
+    ``points3D.bin`` costs minutes and gigabytes before it fails.
+    """
+    if (path / "images.bin").is_file():
+        names = [n for n in _MIN_RECORD if (path / n).exists()]
+    else:
+        names = []
+    for name in names:
+        f = path / name
+        size = f.stat().st_size
+        if size < 8:
+            raise ValueError(f"model file {str(f)!r} is {'empty' if size == 0 else 'truncated'} "
+                             f"({size} bytes); expected a COLMAP binary model")
+        with open(f, "rb") as fh:
+            count = int.from_bytes(fh.read(8), "little")
+        if count * _MIN_RECORD[name] > size - 8:
+            raise ValueError(f"model file {str(f)!r} is truncated or not a COLMAP binary file: it announces {count} "
+                             f"records in {size} bytes")
 
 
 def reconstruction_from_views(views):

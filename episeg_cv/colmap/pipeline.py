@@ -12,7 +12,9 @@ uses unchanged (:func:`triangulate`).
 
 from __future__ import annotations
 
+import dataclasses
 import os
+import shutil
 import sys
 import time
 from dataclasses import dataclass, field
@@ -23,7 +25,9 @@ import numpy as np
 from .._validation import as_positive_int
 from ..features import PRESETS, FeatureConfig
 from ..matching.config import AcceptRule, SearchConfig, resolve
-from .database import check_database_path, check_resumable, create_database, write_pair
+from .. import __version__
+from .database import check_database_path, check_resumable, create_database, database_lock, write_pair
+from ..interrupts import terminate_as_interrupt
 from .job import PairJob, match_pair
 from .model import auto_depth_ranges, load_model, reconstruction_from_views
 from .pairs import exhaustive_pairs, index_pairs, neighbor_pairs, read_pairs
@@ -32,7 +36,8 @@ from .runner import Runner
 from .store import FeatureStore
 from .views import View, is_bounded, require_pycolmap
 
-__all__ = ["MatchReport", "match_model", "triangulate", "load_views", "EXHAUSTIVE_WARN"]
+__all__ = ["MatchReport", "match_model", "triangulate", "load_views", "check_triangulation_folder",
+           "EXHAUSTIVE_WARN"]
 
 #: Above this many images, exhaustive pairing warns (pairs grow as n^2 / 2).
 EXHAUSTIVE_WARN = 300
@@ -213,7 +218,7 @@ def match_model(model, image_dir, database, *, pairs=None, neighbors=None,
     ConnectionError
         The Dask scheduler cannot be reached.
     """
-    pycolmap = require_pycolmap()  # fail before any work when it is missing
+    require_pycolmap()  # fail before any work when it is missing
     warn = log or (lambda msg: print(msg, file=sys.stderr))
     search, rule = resolve(search, rule, options)
     if search.constraint == "none":
@@ -227,40 +232,58 @@ def match_model(model, image_dir, database, *, pairs=None, neighbors=None,
         raise ValueError(f"image folder {str(image_dir)!r} does not exist")
 
     views, rec = load_views(model)
+    if len(views) < 2:
+        raise ValueError(f"the collection has {len(views)} image; matching needs at least two")
     missing = [v.name for v in views if not (image_dir / v.name).is_file()]
     if missing:
         raise ValueError(f"image {missing[0]!r} of the model is missing in {str(image_dir)!r}"
                          + (f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""))
     views = _resolve_depth(views, rec, depth_range, warn)
     pair_list = _resolve_pairs(views, pairs, neighbors, warn)
+    if not pair_list:
+        raise ValueError("no pair to match: the pairs file lists none" if pairs is not None else
+                         "no pair to match: no two images overlap")
     path = check_database_path(database, resume, overwrite)
-    store = FeatureStore(Path(cache_dir) if cache_dir is not None else path.with_name(path.name + ".features"),
-                         image_dir, features)
+    cache = Path(cache_dir) if cache_dir is not None else path.with_name(path.name + ".features")
+    if cache.exists() and not cache.is_dir():
+        raise ValueError(f"feature cache {str(cache)!r} is a file, expected a folder")
+    store = FeatureStore(cache, image_dir, features)
     if rec is None:
         rec = reconstruction_from_views(views)
     report = MatchReport(path, len(views), len(pair_list),
                          depth_ranges={v.name: v.depth_range for v in views})
 
-    runner = Runner(workers, scheduler)
-    report.runner = runner.describe
-    try:
-        t0 = time.perf_counter()
-        tick = progress or (lambda stage, done, total: None)
-        counts = {}
-        for name, n in runner.imap(_ensure_features, [(store, v) for v in views]):
-            counts[name] = n
-            tick("features", len(counts), len(views))
-        report.seconds_features = time.perf_counter() - t0
-        counts = [counts[v.name] for v in views]
+    settings = {"search": {"tol": search.tol, "constraint": search.constraint}, "rule": dataclasses.asdict(rule),
+                "features": dataclasses.asdict(store.features),
+                "depth_ranges": {v.name: [v.depth_range[0], str(v.depth_range[1])] for v in views}}
+    with terminate_as_interrupt():
+        runner = Runner(workers, scheduler)
+        report.runner = runner.describe
+        try:
+            _run(runner, path, rec, views, store, pair_list, settings, search, rule, resume, report, progress)
+        finally:
+            runner.close()
+    return report
 
-        if resume:
-            done = check_resumable(path, views, counts, pair_list)
-        else:  # a new database, or (overwrite) one replaced atomically by the new one
-            create_database(path, rec, views, store)
-            done = set()
+
+def _run(runner, path, rec, views, store, pair_list, settings, search, rule, resume, report, progress):
+    """Features, then the database (new or resumed), then every pair, written as it comes back."""
+    pycolmap = require_pycolmap()
+    t0 = time.perf_counter()
+    tick = progress or (lambda stage, done, total: None)
+    digests = {}
+    for name, (n, digest) in runner.imap(_ensure_features, [(store, v) for v in views]):
+        digests[name] = digest
+        tick("features", len(digests), len(views))
+    report.seconds_features = time.perf_counter() - t0
+    record = {"settings": settings, "images": digests, "episeg_cv": __version__}
+
+    if not resume:  # a new database, or (overwrite) one replaced atomically by the new one
+        create_database(path, rec, views, store, record)
+    with database_lock(path):
+        done = check_resumable(path, views, record, pair_list) if resume else set()
         todo = [p for p in pair_list if p not in done]
         report.n_skipped = len(pair_list) - len(todo)
-
         jobs = [PairJob(k, views[i], views[j], store, search, rule) for k, (i, j) in enumerate(todo)]
         # a few consecutive pairs per task: less scheduling and pickling, and they share images
         chunks = (jobs[k:k + runner.chunk] for k in range(0, len(jobs), runner.chunk))
@@ -279,13 +302,10 @@ def match_model(model, image_dir, database, *, pairs=None, neighbors=None,
                 tick("pairs", report.n_pairs_done, len(todo))
         finally:
             db.close()
-        report.seconds_matching = time.perf_counter() - t0
-        report.pairs_per_second = report.n_pairs_done / report.seconds_matching if report.seconds_matching > 0 else 0.0
-        if samples:
-            report.search_length = dict(zip(("line", "segment", "segment_in_depth_range"), lengths / samples))
-    finally:
-        runner.close()
-    return report
+    report.seconds_matching = time.perf_counter() - t0
+    report.pairs_per_second = report.n_pairs_done / report.seconds_matching if report.seconds_matching > 0 else 0.0
+    if samples:
+        report.search_length = dict(zip(("line", "segment", "segment_in_depth_range"), lengths / samples))
 
 
 def _feature_config(features) -> FeatureConfig:
@@ -319,7 +339,9 @@ def triangulate(database, model, image_dir, output_dir, options=None):
     model : str, Path or list of View
         The same model given to :func:`match_model` (its 3D points are cleared).
     image_dir, output_dir : str or Path
-        ``output_dir`` is created; the triangulated model is written there.
+        ``output_dir`` is created; the triangulated model is written there (into a temporary
+        folder first, then moved file by file, so an interrupted run leaves no half-written model).
+        It may not be the input model's folder.
     options : pycolmap.IncrementalPipelineOptions, optional
         COLMAP's defaults otherwise. Note that they ignore two-view tracks
         (``triangulation.ignore_two_view_tracks``): a point needs three views.
@@ -329,11 +351,36 @@ def triangulate(database, model, image_dir, output_dir, options=None):
     pycolmap.Reconstruction
     """
     pycolmap = require_pycolmap()
+    out = check_triangulation_folder(output_dir, model)
     views, rec = load_views(model)
     if rec is None:
         rec = reconstruction_from_views(views)
-    out = Path(output_dir)
-    out.mkdir(parents=True, exist_ok=True)
     if options is None:
         options = pycolmap.IncrementalPipelineOptions()
-    return pycolmap.triangulate_points(rec, str(database), str(image_dir), str(out), options=options)
+    tmp = out.with_name(f".{out.name}.{os.getpid()}.partial")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    try:
+        with terminate_as_interrupt():
+            result = pycolmap.triangulate_points(rec, str(database), str(image_dir), str(tmp), options=options)
+            out.mkdir(parents=True, exist_ok=True)
+            for f in sorted(tmp.iterdir()):  # the model's files, each replaced at once
+                os.replace(f, out / f.name)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return result
+
+
+def check_triangulation_folder(output_dir, model) -> Path:
+    """The folder a triangulated model goes to: not the input model's folder, and not a file."""
+    out = Path(output_dir)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"triangulation folder {str(out)!r} is a file, expected a folder")
+    if not isinstance(model, (list, tuple)) and Path(model).is_dir() and out.is_dir() \
+            and os.path.samefile(out, model):
+        raise ValueError(f"triangulation folder {str(out)!r} is the input model's folder; its files would be "
+                         "replaced: give another folder")
+    parent = out.parent if str(out.parent) else Path(".")
+    if not parent.is_dir():
+        raise ValueError(f"triangulation folder {str(out)!r}: its parent folder does not exist")
+    return out

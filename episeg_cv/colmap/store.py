@@ -4,28 +4,35 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import logging
 import os
 import re
+import threading
+import zipfile
 from pathlib import Path
 
 import cv2
 import numpy as np
 
 from ..features import PRESETS, FeatureConfig, detect_features
+from ..io.paths import input_file, output_folder
 from .views import View
+
+_log = logging.getLogger("episeg_cv")
 
 __all__ = ["FeatureStore", "FEATURES_VERSION"]
 
 #: Bumped whenever the features change for the same settings (stale cache files are recomputed).
-FEATURES_VERSION = 2
+FEATURES_VERSION = 3
 
 
 class FeatureStore:
     """Features of each image, computed once and kept on disk as ``.npz`` files.
 
     A file holds the raw keypoints, their pinhole positions and the
-    descriptors, plus a signature of the image file (size and modification
-    time), the detector settings and the camera; a stale file is recomputed.
+    descriptors, plus a signature: the SHA-256 of the image file's content,
+    the detector settings and the camera. A stale or unreadable file is
+    recomputed.
     Files are written atomically (a temporary file, then a rename), so
     concurrent workers and interrupted runs never leave a half-written one.
     For a Dask cluster, ``folder`` must be on a filesystem every worker sees.
@@ -54,43 +61,63 @@ class FeatureStore:
         f = self.features
         return self.folder / f"{stem}.{digest}.{f.detector}{f.max_features}.npz"
 
-    def _signature(self, view: View) -> str:
-        st = (self.image_dir / view.name).stat()
-        f = self.features
-        return repr((FEATURES_VERSION, f.sift_contrast, st.st_size, st.st_mtime_ns, f.detector, f.max_features,
-                     f.root_sift, view.camera_model, tuple(float(p) for p in view.camera_params), view.image_size))
+    def digest(self, view: View) -> str:
+        """SHA-256 of the image file's bytes: what its features (and a resumed database) depend on."""
+        image_path = input_file(self.image_dir / view.name, f"image {view.name!r}")
+        h = hashlib.sha256()
+        with open(image_path, "rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                h.update(block)
+        return h.hexdigest()
 
-    def ensure(self, view: View) -> int:
-        """Compute and store the features of ``view`` unless a fresh file exists; the keypoint count."""
-        image_path = self.image_dir / view.name
-        if not image_path.is_file():
-            raise FileNotFoundError(f"image {view.name!r} is missing: {image_path}")
-        sig = self._signature(view)
+    def _signature(self, view: View, digest: str) -> str:
+        f = self.features
+        return repr((FEATURES_VERSION, digest, f.sift_contrast, f.detector, f.max_features, f.root_sift,
+                     view.camera_model, tuple(float(p) for p in view.camera_params), view.image_size))
+
+    def ensure(self, view: View) -> tuple[int, str]:
+        """Compute and store the features of ``view`` unless a fresh file exists.
+
+        Returns ``(number of keypoints, SHA-256 of the image)``. A cache file that is stale
+        (another image content or setting) or unreadable (truncated, empty) is recomputed.
+        Keypoints where the camera's distortion cannot be inverted are left out
+        (:meth:`View.undistortable`).
+        """
+        digest = self.digest(view)
+        sig = self._signature(view, digest)
         path = self.path(view)
         if path.is_file():
             try:
-                with np.load(path) as z:
+                with np.load(path, allow_pickle=False) as z:
                     if str(z["signature"]) == sig:
-                        return int(len(z["keypoints"]))
-            except (OSError, KeyError, ValueError):
+                        return int(len(z["keypoints"])), digest
+            except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile):
                 pass  # unreadable or stale: recompute
+        image_path = self.image_dir / view.name
         image = cv2.imread(str(image_path), cv2.IMREAD_GRAYSCALE)
         if image is None:
-            raise ValueError(f"image {view.name!r} cannot be read: {image_path}")
+            raise ValueError(f"image {view.name!r} cannot be read (not an image OpenCV can decode): {image_path}")
         if (image.shape[1], image.shape[0]) != tuple(view.image_size):
             raise ValueError(f"image {view.name!r} is {image.shape[1]}x{image.shape[0]}, but its camera says "
                              f"{view.image_size[0]}x{view.image_size[1]}")
         kp, des = detect_features(image, self.features)
-        self.folder.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp.npz")
-        np.savez(tmp, keypoints=kp, pinhole=view.undistort(kp), descriptors=des, signature=np.array(sig))
-        os.replace(tmp, path)
-        return int(len(kp))
+        ok = view.undistortable(kp)
+        if not ok.all():
+            _log.info("image %r: %d of %d keypoints lie where the camera's distortion cannot be inverted; left out",
+                      view.name, int((~ok).sum()), len(kp))
+            kp, des = kp[ok], des[ok]
+        output_folder(self.folder, "feature cache")
+        tmp = path.with_name(f"{path.name}.{os.getpid()}.{threading.get_ident()}.tmp.npz")
+        try:
+            np.savez(tmp, keypoints=kp, pinhole=view.undistort(kp), descriptors=des, signature=np.array(sig))
+            os.replace(tmp, path)
+        finally:
+            tmp.unlink(missing_ok=True)
+        return int(len(kp)), digest
 
     def keypoints(self, view: View) -> np.ndarray:
-        """The raw ``(N, 2)`` keypoints of ``view`` only (the descriptors stay on disk)."""
-        with np.load(self.path(view)) as z:
-            return z["keypoints"]
+        """The raw ``(N, 2)`` keypoints of ``view`` (run :meth:`ensure` first)."""
+        return self.load(view)[0]
 
     def load(self, view: View) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(keypoints, pinhole keypoints, descriptors)`` of ``view`` (run :meth:`ensure` first).
@@ -104,8 +131,12 @@ class FeatureStore:
 
 @functools.lru_cache(maxsize=8)
 def _load_features(path: str, mtime_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    with np.load(path) as z:
-        out = z["keypoints"], z["pinhole"], z["descriptors"]
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            out = z["keypoints"], z["pinhole"], z["descriptors"]
+    except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+        raise ValueError(f"feature cache file {path!r} cannot be read ({type(exc).__name__}); "
+                         "it was changed during the run") from None
     for a in out:
         a.flags.writeable = False
     return out

@@ -113,20 +113,52 @@ class View:
         """(3,) camera centre in the world, ``-R^T t``."""
         return -self.R.T @ self.t
 
+    def _camera(self):
+        pycolmap = require_pycolmap()
+        w, h = self.image_size
+        return pycolmap.Camera(model=self.camera_model, width=w, height=h, params=list(self.camera_params))
+
     def undistort(self, points: np.ndarray) -> np.ndarray:
         """Raw keypoints ``(N, 2)`` -> their positions in the pinhole image of ``K``.
 
         Identity for ``SIMPLE_PINHOLE`` and ``PINHOLE``; otherwise COLMAP's
-        own inverse of the camera model (``pycolmap.Camera.cam_from_img``).
+        own inverse of the camera model (``pycolmap.Camera.cam_from_img``); NaN
+        where it has none (see :meth:`undistortable`).
         """
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
         if self.camera_model in PINHOLE_MODELS or len(pts) == 0:
             return pts.copy()
-        pycolmap = require_pycolmap()
-        w, h = self.image_size
-        cam = pycolmap.Camera(model=self.camera_model, width=w, height=h, params=list(self.camera_params))
-        rays = np.asarray(cam.cam_from_img(pts + 0.5), dtype=np.float64).reshape(-1, 2)
+        rays = np.asarray(self._camera().cam_from_img(pts + 0.5), dtype=np.float64).reshape(-1, 2)
         return rays @ self.K[:2, :2].T + self.K[:2, 2]
+
+    def undistortable(self, points: np.ndarray, tol: float = 0.05) -> np.ndarray:
+        """``(N,)`` bool: where the camera model maps the raw pixel back to one pinhole position.
+
+        True when COLMAP's inverse exists, the forward model maps it back to the
+        pixel within ``tol`` pixels, and the distortion is locally one-to-one there
+        (its Jacobian has a positive determinant). A distortion that folds over
+        the image (``k1 = -5``, say) has pixels with no inverse, or an inverse on
+        the wrong branch; their keypoints would match on the wrong segment.
+        """
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+        if self.camera_model in PINHOLE_MODELS or len(pts) == 0:
+            return np.ones(len(pts), dtype=bool)
+        cam = self._camera()
+        rays = np.asarray(cam.cam_from_img(pts + 0.5), dtype=np.float64).reshape(-1, 2)
+        ok = np.all(np.isfinite(rays), axis=1)
+        r = np.where(ok[:, None], rays, 0.0)
+
+        def forward(d):
+            xyz = np.column_stack([r + d, np.ones(len(r))])
+            return np.asarray(cam.img_from_cam(xyz, check_cheirality=False), dtype=np.float64).reshape(-1, 2)
+
+        eps = 1e-6
+        back = forward(np.zeros(2)) - 0.5
+        jx = (forward(np.array([eps, 0.0])) - forward(np.array([-eps, 0.0]))) / (2 * eps)
+        jy = (forward(np.array([0.0, eps])) - forward(np.array([0.0, -eps]))) / (2 * eps)
+        with np.errstate(invalid="ignore"):
+            det = jx[:, 0] * jy[:, 1] - jx[:, 1] * jy[:, 0]
+            return ok & (np.hypot(*(back - pts).T) <= tol) & (det > 0)
 
 
 def depth_range_from_depths(depths, percentiles=(2.0, 98.0), margin: float = 0.25, min_points: int = 10):

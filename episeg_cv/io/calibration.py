@@ -30,7 +30,7 @@ import numpy as np
 from .._validation import as_camera_matrix, as_image_size, as_rotation, as_vector3
 from ..distortion import as_distortion
 from ..geometry import TwoViewGeometry, as_geometry
-from .paths import input_file, output_file
+from .paths import input_file, output_file, written_atomically
 
 __all__ = ["Calibration", "load_calibration", "save_calibration"]
 
@@ -446,21 +446,23 @@ def save_calibration(path, calibration: Calibration) -> Path:
         for name in ("dist1", "dist2"):
             if getattr(c, name) is not None:
                 out[name] = getattr(c, name).tolist()
-        path.write_text(json.dumps(out, indent=2) + "\n")
+        with written_atomically(path) as tmp:
+            tmp.write_text(json.dumps(out, indent=2) + "\n")
         return path
-    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
-    if not fs.isOpened():
-        raise OSError(f"cannot write {path}")
-    try:
-        fs.write("M1", c.K1)
-        fs.write("D1", np.zeros((1, 5)) if c.dist1 is None else c.dist1.reshape(1, -1))
-        fs.write("M2", c.K2)
-        fs.write("D2", np.zeros((1, 5)) if c.dist2 is None else c.dist2.reshape(1, -1))
-        fs.write("R", c.R)
-        fs.write("T", c.t.reshape(3, 1))
-        for name in ("image_size1", "image_size2"):
-            if getattr(c, name) is not None:
-                fs.write(name, np.array(getattr(c, name), dtype=np.int32))
-    finally:
-        fs.release()
+    with written_atomically(path) as tmp:
+        fs = cv2.FileStorage(str(tmp), cv2.FILE_STORAGE_WRITE)
+        if not fs.isOpened():
+            raise OSError(f"cannot write calibration file {str(path)!r} (use .json, .yml, .yaml or .xml)")
+        try:
+            fs.write("M1", c.K1)
+            fs.write("D1", np.zeros((1, 5)) if c.dist1 is None else c.dist1.reshape(1, -1))
+            fs.write("M2", c.K2)
+            fs.write("D2", np.zeros((1, 5)) if c.dist2 is None else c.dist2.reshape(1, -1))
+            fs.write("R", c.R)
+            fs.write("T", c.t.reshape(3, 1))
+            for name in ("image_size1", "image_size2"):
+                if getattr(c, name) is not None:
+                    fs.write(name, np.array(getattr(c, name), dtype=np.int32))
+        finally:
+            fs.release()
     return path

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .paths import input_file, output_file
+from .paths import input_file, output_file, written_atomically
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "write_matches", "read_matches", "json_number"]
 
@@ -76,22 +76,23 @@ def write_matches(path, meta: dict, keypoints1, keypoints2, matches, distances, 
         raise ValueError(f"matches, distances and labels must have the same length, got {len(m)}, {len(d)}, {len(labels)}")
     extra = extra or {}
     suffix = path.suffix.lower()
-    if suffix == ".json":
-        out = {"meta": meta, "keypoints1": np.round(k1, 4).tolist(), "keypoints2": np.round(k2, 4).tolist(),
-               "matches": m.tolist(), "distances": [round(float(x), 5) for x in d], "labels": labels}
-        out.update({k: np.round(np.asarray(v, np.float64), 4).tolist() for k, v in extra.items()})
-        path.write_text(json.dumps(out, separators=(",", ":")) + "\n")
-    elif suffix == ".npz":
-        np.savez_compressed(path, meta=np.array(json.dumps(meta)), keypoints1=k1, keypoints2=k2, matches=m,
-                            distances=d.astype(np.float32), labels=np.array(labels, dtype="U16"),
-                            **{k: np.asarray(v, np.float64) for k, v in extra.items()})
-    else:  # .csv
-        with path.open("w", newline="") as f:
-            w = csv.writer(f)
-            w.writerow(["x1", "y1", "x2", "y2", "distance", "label"])
-            for (i, j), dist, lab in zip(m, d, labels):
-                w.writerow([f"{k1[i, 0]:.4f}", f"{k1[i, 1]:.4f}", f"{k2[j, 0]:.4f}", f"{k2[j, 1]:.4f}",
-                            f"{dist:.5g}", lab])
+    with written_atomically(path) as tmp:
+        if suffix == ".json":
+            out = {"meta": meta, "keypoints1": np.round(k1, 4).tolist(), "keypoints2": np.round(k2, 4).tolist(),
+                   "matches": m.tolist(), "distances": [round(float(x), 5) for x in d], "labels": labels}
+            out.update({k: np.round(np.asarray(v, np.float64), 4).tolist() for k, v in extra.items()})
+            tmp.write_text(json.dumps(out, separators=(",", ":")) + "\n")
+        elif suffix == ".npz":
+            np.savez_compressed(tmp, meta=np.array(json.dumps(meta)), keypoints1=k1, keypoints2=k2, matches=m,
+                                distances=d.astype(np.float32), labels=np.array(labels, dtype="U16"),
+                                **{k: np.asarray(v, np.float64) for k, v in extra.items()})
+        else:  # .csv
+            with tmp.open("w", newline="") as f:
+                w = csv.writer(f)
+                w.writerow(["x1", "y1", "x2", "y2", "distance", "label"])
+                for (i, j), dist, lab in zip(m, d, labels):
+                    w.writerow([f"{k1[i, 0]:.4f}", f"{k1[i, 1]:.4f}", f"{k2[j, 0]:.4f}", f"{k2[j, 1]:.4f}",
+                                f"{dist:.5g}", lab])
     return path
 
 

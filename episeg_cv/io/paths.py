@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
+import threading
 from pathlib import Path
 
-__all__ = ["output_file", "output_folder", "input_file"]
+__all__ = ["output_file", "output_folder", "input_file", "written_atomically"]
 
 
 def _first_file_on_the_way(folder: Path) -> Path | None:
@@ -63,3 +65,15 @@ def input_file(path, what: str) -> Path:
     if not path.is_file():
         raise FileNotFoundError(f"{what} not found: {path}")
     return path
+
+
+@contextlib.contextmanager
+def written_atomically(path: Path):
+    """Yield a temporary path beside ``path`` (same suffix) to write; on success it replaces ``path``
+    at once, on any error or interrupt it is removed. A reader never sees a half-written file."""
+    tmp = path.with_name(f".{path.stem}.{os.getpid()}.{threading.get_ident()}.tmp{path.suffix}")
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)

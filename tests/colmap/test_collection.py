@@ -11,7 +11,7 @@ import pytest
 from episeg_cv import colmap
 from episeg_cv import scenes
 from episeg_cv.colmap import View, depth_range_from_depths, exhaustive_pairs, neighbor_pairs, overlap_scores, read_pairs
-from episeg_cv.colmap.database import interrupts_deferred
+from episeg_cv.interrupts import interrupts_deferred
 from episeg_cv.colmap.runner import Runner
 
 
