@@ -121,16 +121,27 @@ def as_vector3(t, name: str) -> np.ndarray:
 
 def as_image_size(size, name: str) -> tuple[int, int]:
     """``(width, height)`` as two positive integers."""
+    shown = short_repr(size)
     if isinstance(size, (str, bytes)) or size is None or not hasattr(size, "__len__") or len(size) != 2:
-        raise ValueError(f"{name} must be (width, height) in pixels, got {size!r}")
+        raise ValueError(f"{name} must be (width, height) in pixels, got {shown}")
     out = []
     for v in size:
         if isinstance(v, (bool, np.bool_)) or not isinstance(v, numbers.Real):
-            raise TypeError(f"{name} must hold two numbers (width, height), got {size!r}")
-        if not np.isfinite(v) or v != int(v) or v <= 0:
-            raise ValueError(f"{name} must be two positive integers (width, height), got {size!r}")
+            raise TypeError(f"{name} must hold two numbers (width, height), got {shown}")
+        if not np.isfinite(v) or v != int(v) or v <= 0 or v > MAX_IMAGE_SIDE:
+            raise ValueError(f"{name} must be two integers in [1, {MAX_IMAGE_SIDE}] (width, height), got {shown}")
         out.append(int(v))
     return out[0], out[1]
+
+
+#: The largest image side accepted (pixels).
+MAX_IMAGE_SIDE = 1 << 20
+
+
+def short_repr(x, limit: int = 80) -> str:
+    """A one-line repr of ``x``, cut at ``limit`` characters."""
+    text = " ".join(repr(x).split())
+    return text if len(text) <= limit else text[:limit - 3] + "..."
 
 
 def as_nonnegative(x, name: str) -> float:

@@ -5,8 +5,9 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import numpy as np
 
+from .._validation import as_camera_matrix, as_image_size, short_repr
+from ..io.paths import input_file
 from .views import View, is_bounded
 
 __all__ = ["load_poses", "save_poses", "camera_of"]
@@ -48,10 +49,15 @@ def load_poses(path) -> list[View]:
     ValueError
         Unreadable JSON, a missing field or a bad value, naming the image.
     """
+    path = input_file(path, "poses file")
     try:
-        data = json.loads(Path(path).read_text(encoding="utf-8"))
-    except (OSError, json.JSONDecodeError) as e:
-        raise ValueError(f"poses file {str(path)!r} cannot be read: {e}") from e
+        data = json.loads(path.read_text(encoding="utf-8-sig"))
+    except UnicodeDecodeError as e:
+        raise ValueError(f"poses file {str(path)!r} is not a text file ({e.reason})") from None
+    except json.JSONDecodeError as e:
+        raise ValueError(f"poses file {str(path)!r}: invalid JSON at line {e.lineno}, column {e.colno}: {e.msg}") from None
+    except RecursionError:
+        raise ValueError(f"poses file {str(path)!r}: JSON nested too deeply to be a poses file") from None
     items = data.get("images") if isinstance(data, dict) else data
     if not isinstance(items, list) or not items:
         raise ValueError(f"poses file {str(path)!r} must hold a non-empty list 'images'")
@@ -63,20 +69,23 @@ def load_poses(path) -> list[View]:
         missing = [f for f in ("name", "K", "R", "t", "width", "height") if f not in item]
         if missing:
             raise ValueError(f"{where}: missing {', '.join(missing)}")
-        name = str(item["name"])
+        if not isinstance(item["name"], str) or not item["name"]:
+            raise ValueError(f"{where}: name must be a non-empty string (the image's path), got "
+                             f"{short_repr(item['name'])}")
+        name = item["name"]
         if name in names:
             raise ValueError(f"{where}: image {name!r} is listed twice")
         names.add(name)
         try:
-            K = np.asarray(item["K"], dtype=np.float64)
-            size = (int(item["width"]), int(item["height"]))
+            K = as_camera_matrix(item["K"], "K")
+            size = as_image_size((item["width"], item["height"]), "width, height")
             model, params = camera_of(K, size, item.get("dist", ()))
             key = (model, params, size)
             cameras.setdefault(key, len(cameras) + 1)
             views.append(View(name, k + 1, cameras[key], K, item["R"], item["t"], size, model, params,
                               item.get("depth_range", (0.0, float("inf")))))
-        except (TypeError, ValueError) as e:
-            raise ValueError(f"{where} ({name!r}): {e}") from e
+        except (TypeError, ValueError, OverflowError) as e:
+            raise ValueError(f"{where} ({name!r}): {' '.join(str(e).split())}") from None
     return views
 
 

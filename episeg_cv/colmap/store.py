@@ -88,8 +88,8 @@ class FeatureStore:
         path = self.path(view)
         if path.is_file():
             try:
-                with np.load(path, allow_pickle=False) as z:
-                    if str(z["signature"]) == sig:
+                with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as z:
+                    if str(z["signature"]) == sig and _complete(z, self.features):
                         return int(len(z["keypoints"])), digest
             except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile):
                 pass  # unreadable or stale: recompute
@@ -129,10 +129,19 @@ class FeatureStore:
         return _load_features(str(path), path.stat().st_mtime_ns)
 
 
+def _complete(z, features: FeatureConfig) -> bool:
+    """Whether a cache file holds every array, consistent with each other and with the detector."""
+    kp, pin, des = z["keypoints"], z["pinhole"], z["descriptors"]
+    n = len(kp)
+    want = np.float32 if features.detector == "sift" else np.uint8
+    return (kp.shape == (n, 2) and pin.shape == (n, 2) and des.ndim == 2 and len(des) == n and des.dtype == want
+            and kp.dtype == np.float64 and pin.dtype == np.float64)
+
+
 @functools.lru_cache(maxsize=8)
 def _load_features(path: str, mtime_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     try:
-        with np.load(path, allow_pickle=False) as z:
+        with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as z:
             out = z["keypoints"], z["pinhole"], z["descriptors"]
     except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile) as exc:
         raise ValueError(f"feature cache file {path!r} cannot be read ({type(exc).__name__}); "

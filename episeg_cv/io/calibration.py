@@ -21,13 +21,14 @@ pixel centres at integer coordinates; ``image_size`` is ``(width, height)``.
 from __future__ import annotations
 
 import json
+import re
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from .._validation import as_camera_matrix, as_image_size, as_rotation, as_vector3
+from .._validation import MAX_IMAGE_SIDE, short_repr, as_camera_matrix, as_image_size, as_rotation, as_vector3
 from ..distortion import as_distortion
 from ..geometry import TwoViewGeometry, as_geometry
 from .paths import input_file, output_file, written_atomically
@@ -223,10 +224,12 @@ def load_calibration(path, image_size1=None, image_size2=None) -> Calibration:
     path = input_file(path, "calibration file")
     name = path.name
     if path.suffix.lower() == ".json":
+        if path.stat().st_size > MAX_CALIBRATION_BYTES:
+            raise ValueError(f"{name}: {path.stat().st_size} bytes is too large for a calibration file")
         try:
             data = json.loads(path.read_text(encoding="utf-8-sig"))
             if isinstance(data, dict):
-                data = {k: _from_opencv_json(v) for k, v in data.items()}
+                data = {k: _keyed(_from_opencv_json, v, k, name) for k, v in data.items()}
         except UnicodeDecodeError as exc:
             raise ValueError(f"{name}: not a text file ({exc.reason})") from None
         except json.JSONDecodeError as exc:
@@ -245,10 +248,21 @@ def load_calibration(path, image_size1=None, image_size2=None) -> Calibration:
     return calib
 
 
+def _keyed(fn, value, key, source):
+    try:
+        return fn(value)
+    except ValueError as exc:
+        raise ValueError(f"{source}: key '{key}': {exc}") from None
+
+
 def _from_opencv_json(v):
-    """A matrix as ``cv2.FileStorage`` writes it in JSON, or ``v`` unchanged."""
+    """A matrix as ``cv2.FileStorage`` writes it in JSON, or ``v`` unchanged (ValueError when malformed)."""
     if isinstance(v, dict) and v.get("type_id") == "opencv-matrix" and {"rows", "cols", "data"} <= v.keys():
-        return np.asarray(v["data"], dtype=np.float64).reshape(v["rows"], v["cols"])
+        try:
+            return np.asarray(v["data"], dtype=np.float64).reshape(int(v["rows"]), int(v["cols"]))
+        except (ValueError, TypeError, OverflowError):
+            raise ValueError(f"an opencv-matrix must hold rows x cols numbers in 'data', got rows {short_repr(v['rows'])}, "
+                             f"cols {short_repr(v['cols'])} and {short_repr(v['data'])}") from None
     if isinstance(v, list):
         return [_from_opencv_json(x) for x in v]
     if isinstance(v, dict):
@@ -256,20 +270,76 @@ def _from_opencv_json(v):
     return v
 
 
+#: A calibration file is a few kilobytes; larger files are refused before any parser sees them.
+MAX_CALIBRATION_BYTES = 1 << 20
+#: Deepest nesting of brackets (YAML) or elements (XML) accepted: OpenCV's parser recurses on the C
+#: stack, so a file nested 100000 levels deep would crash the process, not raise.
+MAX_NESTING = 64
+
+
+def _nesting_depth(text: str, xml: bool) -> int:
+    """The deepest nesting of ``[``/``{`` (YAML, JSON) or of elements (XML), outside quoted strings."""
+    depth = best = 0
+    if xml:
+        for m in re.finditer(r"<(/?)([^<>]*?)(/?)>", text):
+            closing, body, empty = m.groups()
+            if body.startswith(("?", "!")) or empty:
+                continue
+            depth += -1 if closing else 1
+            best = max(best, depth)
+        return best
+    quote = None
+    for ch in text:
+        if quote:
+            if ch == quote:
+                quote = None
+        elif ch in "\"'":
+            quote = ch
+        elif ch in "[{":
+            depth += 1
+            best = max(best, depth)
+        elif ch in "]}":
+            depth -= 1
+    return best
+
+
 def _read_filestorage(path: Path) -> dict:
+    size = path.stat().st_size
+    if size > MAX_CALIBRATION_BYTES:
+        raise ValueError(f"{path.name}: {size} bytes is too large for a calibration file (at most "
+                         f"{MAX_CALIBRATION_BYTES})")
+    text = path.read_bytes().decode("utf-8", errors="replace")
+    xml = text.lstrip().startswith("<")
+    depth = _nesting_depth(text, xml)
+    if depth > MAX_NESTING:
+        raise ValueError(f"{path.name}: nested {depth} levels deep (at most {MAX_NESTING}); not a calibration file")
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
         opened = fs.isOpened()
     except Exception as exc:  # cv2.error, or SystemError wrapping it, on a parse error
-        reason = str(exc.__cause__ or exc).strip().splitlines()[-1]
-        raise ValueError(f"{path.name}: cannot parse as OpenCV YAML/XML ({reason})") from None
+        raise ValueError(f"{path.name}: cannot parse as OpenCV YAML/XML ({_cv_reason(exc)})") from None
     if not opened:
         raise ValueError(f"{path.name}: cannot open as OpenCV YAML/XML (use .json, .yml, .yaml or .xml)")
     try:
         root = fs.root()
-        return {k: _node_value(fs.getNode(k)) for k in root.keys()}
+        out = {}
+        for k in root.keys():
+            try:
+                out[k] = _node_value(fs.getNode(k))
+            except (cv2.error, SystemError, ValueError, OverflowError) as exc:
+                raise ValueError(f"{path.name}: key '{k}' cannot be read ({_cv_reason(exc)})") from None
+        return out
+    except (cv2.error, SystemError) as exc:
+        raise ValueError(f"{path.name}: cannot parse as OpenCV YAML/XML ({_cv_reason(exc)})") from None
     finally:
         fs.release()
+
+
+def _cv_reason(exc: BaseException) -> str:
+    """The last line of an OpenCV error (its assertion), without the source location."""
+    text = str(exc.__cause__ or exc).strip().splitlines()
+    last = text[-1] if text else type(exc).__name__
+    return re.sub(r"^.*?error: \(-?\d+:[^)]*\)\s*", "", last).strip() or last
 
 
 def _node_value(node):
@@ -298,7 +368,7 @@ def _matrix(data: dict, key: str, shape: tuple, source: str, required: bool = Tr
     try:
         arr = np.asarray(v, dtype=np.float64)
     except (ValueError, TypeError):
-        raise ValueError(f"{source}: key '{key}' must be a {_shape_words(shape)} of numbers, got {v!r:.60}") from None
+        raise ValueError(f"{source}: key '{key}' must be a {_shape_words(shape)} of numbers, got {short_repr(v, 60)}") from None
     if shape == (3,) and arr.size == 3 and arr.ndim <= 2:
         arr = arr.reshape(3)
     if arr.shape != shape:
@@ -329,8 +399,10 @@ def _size(data: dict, keys, source: str):
             arr = np.asarray(v, dtype=np.float64).ravel()
         except (ValueError, TypeError):
             arr = np.zeros(0)
-        if arr.size != 2 or not np.all(np.isfinite(arr)) or np.any(arr <= 0) or np.any(arr != np.round(arr)):
-            raise ValueError(f"{source}: key {label} must be [width, height], two positive integers, got {v!r}")
+        if arr.size != 2 or not np.all(np.isfinite(arr)) or np.any(arr <= 0) or np.any(arr != np.round(arr)) \
+                or np.any(arr > MAX_IMAGE_SIDE):
+            raise ValueError(f"{source}: key {label} must be [width, height], two integers in [1, {MAX_IMAGE_SIDE}], "
+                             f"got {short_repr(v)}")
         return int(arr[0]), int(arr[1])
     return None
 
@@ -349,7 +421,7 @@ def _from_mapping(data: dict, source: str) -> Calibration:
     if "cameras" in data:
         cams = data["cameras"]
         if not isinstance(cams, list) or len(cams) != 2 or not all(isinstance(c, dict) for c in cams):
-            raise ValueError(f"{source}: key 'cameras' must be a list of two objects with K, R, t, got {cams!r:.60}")
+            raise ValueError(f"{source}: key 'cameras' must be a list of two objects with K, R, t, got {short_repr(cams, 60)}")
         Ks, Rs, ts, sizes, dists = [], [], [], [], []
         for i, cam in enumerate(cams):
             where = f"{source}: cameras[{i}]"
@@ -371,7 +443,8 @@ def _from_mapping(data: dict, source: str) -> Calibration:
         return Calibration(g.K1.copy(), g.K2.copy(), g.R.copy(), g.t.copy(), size1, size2,
                            get_dist("dist1", "D1"), get_dist("dist2", "D2"), source)
 
-    if "M1" in data and "K1" not in data:  # cv2.stereoCalibrate names
+    if any(k in data for k in ("M1", "M2", "D1", "D2", "T")) and not any(k in data for k in ("K1", "K2", "K", "t")):
+        # cv2.stereoCalibrate names
         K1 = _matrix(data, "M1", (3, 3), source)
         K2 = _matrix(data, "M2", (3, 3), source)
         R = _matrix(data, "R", (3, 3), source)

@@ -119,7 +119,7 @@ def read_matches(path) -> dict:
         raise ValueError(f"matches file {str(path)!r} must end in .json or .npz")
     try:
         if suffix == ".npz":
-            with np.load(path, allow_pickle=False) as z:
+            with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as z:  # (our handle: closed on any error)
                 data = {k: z[k] for k in z.files}
             data["meta"] = json.loads(str(data["meta"])) if "meta" in data else None
         else:

@@ -76,7 +76,7 @@ def test_poses_json_errors_name_the_image(tmp_path):
     with pytest.raises(ValueError, match=r"'a.png'.*R"):
         colmap.load_poses(f)
     f.write_text("{not json")
-    with pytest.raises(ValueError, match="cannot be read"):
+    with pytest.raises(ValueError, match="invalid JSON at line 1, column 2"):
         colmap.load_poses(f)
 
 
