@@ -18,10 +18,9 @@ code, the candidate index, the matchers and the filters run on it unchanged.
 The sign is fixed by a majority over matches that are mostly right (the
 RANSAC inliers): :meth:`FundamentalGeometry.oriented`. The reverse direction
 (``inverse()``, used by ``cross_check``) is oriented separately on the same
-matches: its majority sign is not the forward one in general. An epipole at
-(or numerically near) infinity, as in rectified stereo, is placed 1e6 units
-away on its side: every line is then all or nothing, which is the whole-line
-constraint.
+matches: its majority sign is not the forward one in general. With the
+epipole at infinity (rectified stereo: ``e2_3 = 0``) the lines do not meet
+and the constraint is all or nothing on each: the whole line is searched.
 """
 
 from __future__ import annotations
@@ -36,8 +35,8 @@ __all__ = ["FundamentalGeometry", "orientation_sign"]
 #: ``J`` with ``J l = (l2, -l1, 0)``: the point at infinity, in the direction ``(l2, -l1)``, of a line ``l``.
 J = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
 
-#: Smallest third coordinate of the unit epipole: nearer infinity it is moved to this (1e6 units away).
-MIN_EPIPOLE_W = 1e-6
+#: Third coordinate of the unit epipole below which it is at infinity (rectified): the whole line is searched.
+MIN_EPIPOLE_W = 1e-9
 
 
 def _null_vectors(F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -51,13 +50,6 @@ def _signed(e: np.ndarray) -> np.ndarray:
     nz = np.flatnonzero(np.abs(e) > 1e-15)
     ref = 2 if abs(e[2]) > 1e-15 else (nz[-1] if nz.size else 0)
     return -e if e[ref] < 0 else e
-
-
-def _finite(e: np.ndarray) -> np.ndarray:
-    e = e.copy()
-    if e[2] < MIN_EPIPOLE_W:
-        e[2] = MIN_EPIPOLE_W
-    return e
 
 
 def orientation_sign(F, epipole2, points1, points2) -> tuple[float, float]:
@@ -124,8 +116,10 @@ class FundamentalGeometry(EpipolarGeometry):
         self.reverse_sign = None if reverse_sign is None else float(reverse_sign)
         self.agreement = agreement
         _, e2 = _null_vectors(self.fundamental_matrix)
-        #: (3,) the epipole in image 2 (unit, third coordinate > 0; 1e-6 when at infinity).
-        self.epipole_homogeneous = _finite(_signed(e2))
+        #: (3,) the epipole in image 2 (unit, third coordinate >= 0).
+        self.epipole_homogeneous = _signed(e2)
+        #: True when the epipole is at infinity (rectified): every half-line is then the whole line.
+        self.at_infinity = bool(self.epipole_homogeneous[2] < MIN_EPIPOLE_W)
         #: (3, 3) ``J F``: ``a = J F [x1; 1]`` is the point at infinity in the half-line's direction.
         self.infinity_homography = J @ self.fundamental_matrix
         for a in (self.fundamental_matrix, self.epipole_homogeneous, self.infinity_homography):
@@ -149,7 +143,7 @@ class FundamentalGeometry(EpipolarGeometry):
         base = cls(F, image_size1=image_size1, image_size2=image_size2)
         Fn = base.fundamental_matrix
         sign, agreement = orientation_sign(Fn, base.epipole_homogeneous, x1, x2)
-        e1 = _finite(_signed(_null_vectors(Fn)[0]))
+        e1 = _signed(_null_vectors(Fn)[0])
         rsign, _ = orientation_sign(Fn.T, e1, x2, x1)
         out = cls.__new__(cls)
         out._set(sign * Fn, base.image_size1, base.image_size2, rsign * sign, agreement)
@@ -175,7 +169,24 @@ class FundamentalGeometry(EpipolarGeometry):
         if np.any(np.asarray(zmin) != 0) or np.any(np.asarray(zmax) != np.inf):
             raise ValueError("a FundamentalGeometry has no metric depth: depth_range must be (0, inf)")
         # the segment code needs only infinity_homography, epipole_homogeneous and the sizes
-        return TwoViewGeometry.segments(self, points1, margin=margin)
+        seg = TwoViewGeometry.segments(self, points1, margin=margin)
+        if not self.at_infinity:
+            return seg
+        # rectified: the lines do not meet at a finite epipole, and the oriented constraint is all or
+        # nothing on each of them; the whole line (F x1) clipped to the rectangle
+        x1 = np.column_stack([as_points(points1, "points1"), np.ones(len(seg))])
+        line = x1 @ self.fundamental_matrix.T
+        nrm = np.hypot(line[:, 0], line[:, 1])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            line = line / np.where(nrm > 0, nrm, np.nan)[:, None]
+        w, h = self.image_size2
+        rect = (-0.5 - margin, w - 0.5 + margin, -0.5 - margin, h - 0.5 + margin)
+        args = dict(line=line, infinity_point=seg.infinity_point, epipole=seg.epipole, margin=seg.margin,
+                    _a=x1 @ self.infinity_homography.T, _b=np.array(self.epipole_homogeneous), _rect=rect)
+        nan = np.full((len(seg), 2), np.nan)
+        whole = EpipolarSegments(nan, nan.copy(), np.zeros(len(seg), dtype=bool), **args)
+        start, end = np.array(whole.line_start), np.array(whole.line_end)
+        return EpipolarSegments(start, end, np.all(np.isfinite(start), axis=1), **args)
 
     def __repr__(self) -> str:
         e = self.epipole

@@ -500,10 +500,11 @@ class TwoViewGeometry(EpipolarGeometry):
         return out
 
     def bands(self, points1, *, tol: float = 2.0, kappa: float = 2.576, depth_range=(0.0, np.inf),
-              margin: float | None = None):
+              margin: float | None = None, max_reach: float | None = None):
         """The per-query search bands that :attr:`covariance` implies (:func:`episeg_cv.uncertainty.epipolar_bands`)."""
         from .uncertainty import epipolar_bands  # (uncertainty builds on this module)
-        return epipolar_bands(self, points1, tol=tol, kappa=kappa, depth_range=depth_range, margin=margin)
+        return epipolar_bands(self, points1, tol=tol, kappa=kappa, depth_range=depth_range, margin=margin,
+                              max_reach=max_reach)
 
     # -- classic quantities ----------------------------------------------------
     @property

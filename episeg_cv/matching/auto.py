@@ -24,11 +24,12 @@ estimate (:func:`estimate_band`), with :class:`~.config.AutoTol`'s constants:
 On exact poses the given pose is kept and the band is 2 px: the result is
 the fixed default's. A geometry with no calibrated pose (an oriented
 fundamental matrix) gets step 4 only; a geometry with a pose covariance uses
-its bands for step 1 and the covariance as the prior of step 2.
+it as the prior of step 2 (and matches without it: the estimate replaces it).
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -197,12 +198,9 @@ def estimate(inputs: MatchInputs, geometry: EpipolarGeometry, search: SearchConf
     p1, p2 = inputs.points1, inputs.points2
     strict = _strict(options, rule)
     band = options.first_band(geometry.image_size2)
-    first = search.replace(tol=band)
-    if geometry.covariance is not None:  # the first pass in the covariance's bands
-        bands = banded.bands_for(geometry, p1, search.replace(tol=options.tol_min))
-        conf = banded.match(inputs, geometry, bands, first, strict, rng, bucket_size)[0]
-    else:
-        conf = guided.match(inputs, geometry, first, strict, rng, bucket_size)[0]
+    # the wide band even with a covariance: its bands as the first pass were measured no better (and
+    # worse where the covariance understates the error)
+    conf = guided.match(inputs, _plain(geometry), search.replace(tol=band), strict, rng, bucket_size)[0]
     unguided = options.unguided_pass is True or (options.unguided_pass == "auto" and len(conf) < options.min_support)
     if unguided:
         conf = _union(conf, unguided_mutual(inputs.distances, options.strict_ratio))
@@ -243,8 +241,8 @@ def estimate_band(descriptors1, descriptors2, points1, points2, geometry, *, opt
         As in :func:`~episeg_cv.match_descriptors`.
     geometry : TwoViewGeometry or FundamentalGeometry
         The given pose, ``X2 = R @ X1 + t`` (perhaps wrong by a degree or so).
-        With a covariance, its bands drive the first pass and it is the
-        refinement's prior. An uncalibrated geometry gets a band only.
+        With a covariance, it is the refinement's prior. An uncalibrated
+        geometry gets a band only.
     options : AutoTol, optional
         The constants (default: ``search.tol`` when it is an ``AutoTol``, else
         ``AutoTol()``); its fields may also be given as keywords (``k=4``).
@@ -277,6 +275,10 @@ def estimate_band(descriptors1, descriptors2, points1, points2, geometry, *, opt
     base = options if options is not None else (search.auto or AutoTol())
     if not isinstance(base, AutoTol):
         raise TypeError(f"options must be an AutoTol or None, got {type(base).__name__}")
+    allowed = [f.name for f in dataclasses.fields(AutoTol)]
+    unknown = [k for k in fields if k not in allowed]
+    if unknown:
+        raise TypeError(f"unknown option {unknown[0]!r}; the options are {', '.join(allowed)}")
     options = base.replace(**fields) if fields else base
     inputs = MatchInputs.check(descriptors1, descriptors2, points1, points2, norm)
     if search.constraint == "none":

@@ -238,7 +238,7 @@ def as_tol(x, name: str = "tol"):
     if isinstance(x, str):
         if x.strip().lower() == "auto":
             return AutoTol()
-        raise ValueError(f"{name} must be a finite number >= 0, 'auto' or an AutoTol, got {x!r}")
+        raise TypeError(f"{name} must be a finite number >= 0, 'auto' or an AutoTol, got {x!r}")
     try:
         return as_nonnegative(x, name)
     except (ValueError, TypeError) as exc:
