@@ -158,7 +158,7 @@ def test_bad_data_gives_exit_1(tmp_path, args, message):
 
 @pytest.mark.parametrize("args", [
     ["match", IMG1, IMG2, "--calib", CALIB, "--bogus"],
-    ["match", IMG1, IMG2],
+    ["match", IMG1, IMG2, "--tol", "wide"],
     ["match", IMG1, IMG2, "--calib", CALIB, "--detector", "surf"],
     ["segments", IMG1, IMG2, "--calib", CALIB, "--points", "1;2"],
     ["nonsense"],
