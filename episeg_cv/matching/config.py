@@ -121,7 +121,7 @@ class AutoTol:
     """How ``tol="auto"`` finds the band (:func:`~episeg_cv.estimate_band`).
 
     The defaults are ``tol="auto"``; the constants and why they were chosen are
-    in ``docs/geometry.md`` (section "An automatic band"). In short: confident
+    in ``docs/geometry.md`` ("Poses that are off"). In short: confident
     matches (mutual, ratio below ``strict_ratio``) from a wide band around the
     given pose, and from plain nearest neighbours when needed; a robust
     refinement of ``R`` and the direction of ``t`` on their distances to the
