@@ -342,7 +342,8 @@ def noise_report(rows: list) -> tuple[list, dict]:
              "auto_vs_best_fixed_min": worst_auto, "auto_vs_tol2_exact_min": exact, "cov_vs_best_fixed_min": worst_cov}
     sec = {m: float(np.median([r["seconds"] for r in rows if r["method"] == m])) for m in methods}
     L += ["", "Goals (issue 16), per pair and seed, errors up to (1, 5) deg:", "",
-          f"- `tol=\"auto\"` precision >= 0.95: lowest {min_prec:.3f} -> **{'met' if min_prec >= 0.95 else 'not met'}** "
+          f"- `tol=\"auto\"` precision >= 0.95: lowest {min_prec:.3f} -> "
+          f"**{'met' if min_prec >= 0.95 else 'not met'}** "
           f"(the default rule on the exact pose, tol 2: lowest {exact_prec:.3f})",
           f"- `tol=\"auto\"` >= 0.9x the best fixed tol in hindsight (@P95): lowest ratio {worst_auto:.2f} -> "
           f"**{'met' if worst_auto >= 0.9 else 'not met'}**",

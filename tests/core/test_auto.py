@@ -277,7 +277,8 @@ def test_every_door_takes_auto(lateral):
     rp, _ = radius_descriptors(d1, d2, p1, p2, off, max_distance=150.0, tol="auto")
     assert np.array_equal(rp, radius_descriptors(d1, d2, p1, p2, est.geometry, max_distance=150.0, search=s)[0])
     m = SegmentMatcher(off, cv2.NORM_L2, tol="auto")
-    kp1, kp2 = [cv2.KeyPoint(float(x), float(y), 3) for x, y in p1], [cv2.KeyPoint(float(x), float(y), 3) for x, y in p2]
+    kp1 = [cv2.KeyPoint(float(x), float(y), 3) for x, y in p1]
+    kp2 = [cv2.KeyPoint(float(x), float(y), 3) for x, y in p2]
     dm = m.match(d1, d2, kp1, kp2)
     assert [(d.queryIdx, d.trainIdx) for d in dm] == [tuple(x) for x in a.tolist()]
     assert len(m.knnMatch(d1, d2, kp1, kp2, 2)) == len(p1)
