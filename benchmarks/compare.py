@@ -12,10 +12,17 @@ Guided matching is swept over its ratio with every acceptance rule tried for
 the default (``--rules``); the headline is the number of correct matches at
 99 % and 95 % precision, read off each precision-recall curve.
 
+Two more sections (``benchmarks/_uncertain.py``): poses that are off (fixed
+``tol``, ``tol="auto"``, the covariance band) and no pose at all (estimated
+geometry against OpenCV's ratio + MAGSAC pipeline), on synthetic renders,
+Motorcycle, a repetitive-texture render and dinoSparseRing pairs
+(``../shared/data/dinoSparseRing`` from the repository root, or ``--dino``).
+
 Usage::
 
-    python benchmarks/compare.py            # full run, 8 synthetic poses + Motorcycle
-    python benchmarks/compare.py --quick    # 3 poses at 320x240 + Motorcycle, under a minute
+    python benchmarks/compare.py            # full run, 8 synthetic poses + Motorcycle, then both sections
+    python benchmarks/compare.py --quick    # small scenes at 320x240 + Motorcycle, about two minutes
+    python benchmarks/compare.py --sections noise nopose
 """
 
 from __future__ import annotations
@@ -32,6 +39,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import machine_metadata  # noqa: E402
+import _uncertain  # noqa: E402
 
 import episeg_cv  # noqa: E402
 from episeg_cv import datasets, filter_pairs, guided_matches, scenes  # noqa: E402
@@ -359,11 +367,80 @@ def write_report(results: list[dict], out: Path, command: str, meta: dict, secon
     (out / "compare.md").write_text("\n".join(L) + "\n")
 
 
+SECTIONS = ("segment", "noise", "nopose")
+REPO = Path(__file__).resolve().parents[1]
+#: Pairs of the two issue-16 sections: (kind, argument) -> loaded once, shared by both.
+NOISE_PAIRS = {"quick": [("synthetic", "forward"), ("synthetic", "lateral"), ("motorcycle", None), ("dino", (15, 0))],
+               "full": [("synthetic", "forward"), ("synthetic", "lateral"), ("synthetic", "converging"),
+                        ("motorcycle", None), ("dino", (15, 0)), ("dino", (8, 9))]}
+NOPOSE_PAIRS = {"quick": [("synthetic", "forward"), ("motorcycle", None), ("repetitive", "forward"),
+                          ("dino", (15, 0))],
+                "full": [("synthetic", "forward"), ("synthetic", "lateral"), ("synthetic", "converging"),
+                         ("synthetic", "backward"), ("motorcycle", None), ("repetitive", "forward"),
+                         ("repetitive", "lateral"), ("dino", (15, 0)), ("dino", (8, 9))]}
+
+
+def uncertain_sections(sections, quick: bool, dino_dir: Path, quiet: bool) -> tuple[list, dict]:
+    """The pose-noise and no-pose sections: (markdown lines, JSON)."""
+    size = (320, 240) if quick else (640, 480)
+    mode = "quick" if quick else "full"
+    cache = {}
+    notes = []
+
+    def load(kind, arg):
+        key = (kind, arg)
+        if key not in cache:
+            if kind == "synthetic":
+                cache[key] = _uncertain.synthetic(arg, size)
+            elif kind == "repetitive":
+                cache[key] = _uncertain.repetitive(arg, size)
+            elif kind == "motorcycle":
+                cache[key] = _uncertain.motorcycle()
+            else:
+                cache[key] = _uncertain.dino(dino_dir, *arg)
+                if cache[key] is None and not notes:
+                    notes.append(f"dinoSparseRing not found at {dino_dir}: its pairs are skipped (--dino DIR).")
+                    print(notes[-1], file=sys.stderr)
+        return cache[key]
+
+    lines, out = [], {"notes": notes}
+    if "noise" in sections:
+        rows = []
+        for kind, arg in NOISE_PAIRS[mode]:
+            pair = load(kind, arg)
+            if pair is not None:
+                rows += _uncertain.noise_rows(pair, 1 if quick else 3)
+                if not quiet:
+                    print(f"noise: {pair.name} done", file=sys.stderr)
+        md, goals = _uncertain.noise_report(rows)
+        lines += [""] + md
+        out["noise"] = {"rows": rows, "goals": goals}
+    if "nopose" in sections:
+        rows = []
+        for kind, arg in NOPOSE_PAIRS[mode]:
+            pair = load(kind, arg)
+            if pair is not None:
+                rows += _uncertain.nopose_rows(pair)
+                if not quiet:
+                    print(f"no pose: {pair.name} done", file=sys.stderr)
+        rep = [p.name for (k, _), p in cache.items() if k == "repetitive" and p is not None]
+        md, goals = _uncertain.nopose_report(rows, rep)
+        lines += [""] + md
+        out["nopose"] = {"rows": rows, "goals": goals}
+    if notes:
+        lines += ["", "Note: " + " ".join(notes)]
+    return lines, out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0],
                                  epilog="example: python benchmarks/compare.py --quick")
-    ap.add_argument("--quick", action="store_true", help="3 poses at 320x240 + Motorcycle (under a minute)")
-    ap.add_argument("--scenes", nargs="+", help=f"subset of {[s[0] for s in FULL_SCENES]}")
+    ap.add_argument("--quick", action="store_true", help="small scenes at 320x240 + Motorcycle (about two minutes)")
+    ap.add_argument("--scenes", nargs="+", help=f"subset of {[s[0] for s in FULL_SCENES]} (the segment section)")
+    ap.add_argument("--sections", nargs="+", choices=SECTIONS, default=list(SECTIONS),
+                    help="segment: segment vs line; noise: poses that are off; nopose: estimated geometry")
+    ap.add_argument("--dino", type=Path, default=REPO.parent / "shared" / "data" / "dinoSparseRing",
+                    help="the dinoSparseRing folder (default ../shared/data/dinoSparseRing from the repository)")
     ap.add_argument("--out", type=Path, default=None,
                     help="output folder (default benchmarks/results; benchmarks/results/quick with --quick)")
     ap.add_argument("--quiet", action="store_true")
@@ -377,17 +454,28 @@ def main(argv=None) -> int:
         ap.error(f"unknown scenes {unknown}; choose from {known_names}")
     args.out.mkdir(parents=True, exist_ok=True)
     command = "python benchmarks/compare.py" + (" --quick" if args.quick else "") + \
-        (f" --scenes {' '.join(args.scenes)}" if args.scenes else "")
+        (f" --scenes {' '.join(args.scenes)}" if args.scenes else "") + \
+        (f" --sections {' '.join(args.sections)}" if list(args.sections) != list(SECTIONS) else "")
     t0 = time.perf_counter()
-    progress = Progress(5 * len(names), args.quiet)
-    results = [run_scene(n, pose, tol, args.quick, args.out, progress) for n, pose, tol in FULL_SCENES if n in names]
+    results = []
+    if "segment" in args.sections:
+        progress = Progress(5 * len(names), args.quiet)
+        results = [run_scene(n, pose, tol, args.quick, args.out, progress) for n, pose, tol in FULL_SCENES
+                   if n in names]
+    extra_lines, extra = uncertain_sections(args.sections, args.quick, args.dino, args.quiet)
     seconds = time.perf_counter() - t0
     meta = machine_metadata()
     stem = "compare"
     (args.out / f"{stem}.json").write_text(json.dumps({"meta": meta, "command": command, "seconds": seconds,
-                                                       "episeg_cv": episeg_cv.__version__, "results": results},
-                                                      indent=1, default=float))
-    write_report(results, args.out, command, meta, seconds)
+                                                       "episeg_cv": episeg_cv.__version__, "results": results,
+                                                       **extra}, indent=1, default=float))
+    if results:
+        write_report(results, args.out, command, meta, seconds)
+    else:
+        (args.out / "compare.md").write_text(f"# Segment vs line: precision and recall\n\nMade by `{command}` in "
+                                             f"{seconds:.0f} s on {meta['cpu']} ({meta['cpu_count']} cores).\n")
+    with open(args.out / "compare.md", "a") as f:
+        f.write("\n".join(extra_lines) + ("\n" if extra_lines else ""))
     print(f"wrote {args.out / (stem + '.md')} and {args.out / (stem + '.json')}")
     return 0
 

@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import argparse
 import concurrent.futures as cf
-import dataclasses
 import fnmatch
 import gzip
 import hashlib
@@ -2136,7 +2135,7 @@ def g_api_matcher() -> list[Case]:
         am(f"SegmentMatcher({val})", "constructor", f"SegmentMatcher({kw})", err=err)
     M = "SegmentMatcher(geom())"
     am("match valid", "float32 SIFT-like", f"{M}.match(D1, D2, kps(P1), kps(P2))", "result", check=check_api(_matches_some))
-    am("match uint8 Hamming", "binary", f"SegmentMatcher(geom(), 6).match(B1, B2, P1, P2)", "result",
+    am("match uint8 Hamming", "binary", "SegmentMatcher(geom(), 6).match(B1, B2, P1, P2)", "result",
        check=check_api(_matches_some))
     am("match queryDescriptors None", "cv2 returns None for no keypoints", f"{M}.match(None, D2, [], P2)", "either",
        ("queryDescriptors",))

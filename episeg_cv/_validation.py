@@ -119,6 +119,23 @@ def as_vector3(t, name: str) -> np.ndarray:
     return as_array(arr, name, (3,))
 
 
+def as_covariance(cov, name: str, n: int = 6) -> np.ndarray:
+    """A finite, symmetric, positive semi-definite ``(n, n)`` covariance (symmetrised; float64).
+
+    Symmetry and the smallest eigenvalue are checked relative to the largest
+    entry (``1e-9``), so that rounding in a file does not make it fail.
+    """
+    C = as_array(cov, name, (n, n))
+    scale = float(np.abs(C).max())
+    if float(np.abs(C - C.T).max()) > 1e-9 * scale:
+        raise ValueError(f"{name} must be symmetric, got max |C - C^T| = {float(np.abs(C - C.T).max()):.3g}")
+    C = 0.5 * (C + C.T)
+    low = float(np.linalg.eigvalsh(C).min()) if scale > 0 else 0.0
+    if low < -1e-9 * scale:
+        raise ValueError(f"{name} must be positive semi-definite, got an eigenvalue {low:.3g}")
+    return C
+
+
 def as_image_size(size, name: str) -> tuple[int, int]:
     """``(width, height)`` as two positive integers."""
     shown = short_repr(size)

@@ -40,6 +40,7 @@ import numpy as np
 from ._validation import (
     as_array,
     as_camera_matrix,
+    as_covariance,
     as_depth_range,
     as_image_size,
     as_nonnegative,
@@ -48,7 +49,7 @@ from ._validation import (
     as_vector3,
 )
 
-__all__ = ["TwoViewGeometry", "EpipolarSegments", "Rejection", "as_geometry"]
+__all__ = ["EpipolarGeometry", "TwoViewGeometry", "EpipolarSegments", "Rejection", "as_geometry", "as_calibrated"]
 
 #: Relative tolerance of the strict cheirality test ``w3 > eps * (|U| + |V|)``.
 CHEIRALITY_EPS = 1e-12
@@ -315,7 +316,39 @@ class EpipolarSegments:
         return np.where(e_first, Rejection.BEYOND_EPIPOLE, np.where(ci, Rejection.BEYOND_INFINITY, Rejection.OUT_OF_RANGE)).astype(np.int8)
 
 
-class TwoViewGeometry:
+class EpipolarGeometry:
+    """What the segments and the matchers need from two views: the base of every geometry.
+
+    A segment in image 2 is the set of ``w(z) = z a + b``, ``z >= 0`` (up to
+    positive scale), with ``a = infinity_homography @ [x1, 1]`` and ``b =
+    epipole_homogeneous``, clipped to image 2 (:meth:`TwoViewGeometry.segments`).
+    :class:`TwoViewGeometry` (a calibrated pose) and
+    :class:`~episeg_cv.FundamentalGeometry` (an oriented fundamental matrix:
+    the half-line from the epipole) provide it; :class:`~episeg_cv.CandidateIndex`,
+    the matchers and the filters accept either.
+
+    Attributes
+    ----------
+    infinity_homography : (3, 3) float64
+    epipole_homogeneous : (3,) float64
+    image_size1, image_size2 : (int, int)
+    is_calibrated : bool
+        True when ``K1, K2, R, t`` are known (depth along each ray is metric).
+    covariance : (6, 6) float64 or None
+        Pose covariance (:meth:`TwoViewGeometry.with_covariance`); None for none.
+    """
+
+    is_calibrated = False
+    covariance = None
+
+    @property
+    def epipole(self) -> np.ndarray:
+        """(2,) the epipole in image 2, in pixels; inf or NaN when it is at infinity."""
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            return self.epipole_homogeneous[:2] / self.epipole_homogeneous[2]
+
+
+class TwoViewGeometry(EpipolarGeometry):
     """Two calibrated pinhole views with a known relative pose.
 
     Parameters
@@ -353,6 +386,8 @@ class TwoViewGeometry:
     def __init__(self, K1, K2, R, t, *, image_size1, image_size2):
         self._set(as_camera_matrix(K1, "K1"), as_camera_matrix(K2, "K2"), as_rotation(R, "R"), as_vector3(t, "t"),
                   as_image_size(image_size1, "image_size1"), as_image_size(image_size2, "image_size2"))
+
+    is_calibrated = True
 
     def _set(self, K1, K2, R, t, image_size1, image_size2):
         """Store checked values and derive the rest (the one place that does, for every constructor)."""
@@ -416,7 +451,60 @@ class TwoViewGeometry:
         inv = TwoViewGeometry.__new__(TwoViewGeometry)
         inv._set(self.K2, self.K1, np.ascontiguousarray(self.R.T), -self.R.T @ self.t,
                  self.image_size2, self.image_size1)
+        if self.covariance is not None:
+            # R' = R^T, t' = -R^T t: to first order dtheta' = -R^T dtheta, dt' = -R^T dt - R^T [t]x dtheta
+            G = np.zeros((6, 6))
+            G[:3, :3] = -self.R.T
+            G[3:, :3] = -self.R.T @ _skew(self.t)
+            G[3:, 3:] = -self.R.T
+            inv.covariance = _frozen(G @ self.covariance @ G.T)
         return inv
+
+    def with_covariance(self, cov) -> "TwoViewGeometry":
+        """The same pose with an uncertainty: a new geometry whose :attr:`covariance` is ``cov``.
+
+        Parameters
+        ----------
+        cov : (6, 6) array_like
+            Covariance of ``xi = (dtheta, dt)``, the error of the pose, with the
+            true pose ``R = expm([dtheta]_x) @ R0`` (a *left* perturbation: the
+            rotation vector ``dtheta`` is in camera 2's frame, radians) and
+            ``t = t0 + dt`` (the unit of ``t``). Symmetric positive
+            semi-definite; ``None`` removes the covariance.
+
+        Returns
+        -------
+        TwoViewGeometry
+            Matchers given it search, for each query, a band that is ``kappa``
+            standard deviations of the propagated error wide (and a little
+            longer at the geometric ends), instead of a fixed ``tol``
+            (:meth:`bands`, :func:`~episeg_cv.pose_covariance`).
+
+        Raises
+        ------
+        ValueError
+            Not ``(6, 6)``, not finite, not symmetric, or not positive semi-definite.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> K = [[500, 0, 320], [0, 500, 240], [0, 0, 1]]
+        >>> g = TwoViewGeometry(K, K, np.eye(3), [-1, 0, 0], image_size1=(640, 480), image_size2=(640, 480))
+        >>> gc = g.with_covariance(np.diag([1e-6] * 3 + [1e-4] * 3))
+        >>> gc.covariance.shape, g.covariance is None
+        ((6, 6), True)
+        """
+        out = TwoViewGeometry.__new__(TwoViewGeometry)
+        out._set(self.K1, self.K2, self.R, self.t, self.image_size1, self.image_size2)
+        out.covariance = None if cov is None else _frozen(as_covariance(cov, "cov"))
+        return out
+
+    def bands(self, points1, *, tol: float = 2.0, kappa: float = 2.576, depth_range=(0.0, np.inf),
+              margin: float | None = None, max_reach: float | None = None):
+        """The per-query search bands that :attr:`covariance` implies (:func:`episeg_cv.uncertainty.epipolar_bands`)."""
+        from .uncertainty import epipolar_bands  # (uncertainty builds on this module)
+        return epipolar_bands(self, points1, tol=tol, kappa=kappa, depth_range=depth_range, margin=margin,
+                              max_reach=max_reach)
 
     # -- classic quantities ----------------------------------------------------
     @property
@@ -428,12 +516,6 @@ class TwoViewGeometry:
     def fundamental_matrix(self) -> np.ndarray:
         """(3, 3) ``F = K2^-T E K1^-1``, with ``[x2, 1] F [x1, 1] = 0`` in pixels."""
         return np.linalg.inv(self.K2).T @ self.essential_matrix @ np.linalg.inv(self.K1)
-
-    @property
-    def epipole(self) -> np.ndarray:
-        """(2,) the epipole in image 2, in pixels; inf or NaN when ``t_3 = 0``."""
-        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            return self.epipole_homogeneous[:2] / self.epipole_homogeneous[2]
 
     def __repr__(self) -> str:
         return (f"TwoViewGeometry(R=rotvec {np.round(_rotvec(self.R), 4).tolist()}, t={np.round(self.t, 4).tolist()}, "
@@ -523,11 +605,25 @@ class TwoViewGeometry:
         return EpipolarSegments(start, end, valid, line, p_inf, self.epipole, margin, a, b.copy(), rect)
 
 
-def as_geometry(geometry, name: str = "geometry") -> TwoViewGeometry:
-    """``geometry`` itself, or ``TypeError`` naming ``name`` when it is not a :class:`TwoViewGeometry`."""
-    if not isinstance(geometry, TwoViewGeometry):
-        raise TypeError(f"{name} must be a TwoViewGeometry, got {type(geometry).__name__}")
+def as_geometry(geometry, name: str = "geometry") -> EpipolarGeometry:
+    """``geometry`` itself, or ``TypeError`` naming ``name`` when it is not an :class:`EpipolarGeometry`
+    (a :class:`TwoViewGeometry` or a :class:`~episeg_cv.FundamentalGeometry`)."""
+    if not isinstance(geometry, EpipolarGeometry):
+        raise TypeError(f"{name} must be a TwoViewGeometry or a FundamentalGeometry, got {type(geometry).__name__}")
     return geometry
+
+
+def as_calibrated(geometry, name: str = "geometry") -> TwoViewGeometry:
+    """``geometry`` itself when it is a :class:`TwoViewGeometry` (a calibrated pose), else ``TypeError``."""
+    if not isinstance(geometry, TwoViewGeometry):
+        raise TypeError(f"{name} must be a TwoViewGeometry (K1, K2, R, t), got {type(geometry).__name__}")
+    return geometry
+
+
+def _frozen(a: np.ndarray) -> np.ndarray:
+    a = np.array(a, dtype=np.float64)
+    a.flags.writeable = False
+    return a
 
 
 def _rq(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

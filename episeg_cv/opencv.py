@@ -15,7 +15,7 @@ import numpy as np
 
 from ._validation import as_index_pairs, as_nonnegative, as_norm, as_points, as_positive_int
 from .geometry import as_geometry
-from .matching import guided
+from .matching import auto, guided
 from .matching.config import AcceptRule, SearchConfig, resolve
 from .matching.filtering import explain, keep_mask
 
@@ -64,9 +64,12 @@ class SegmentMatcher:
 
     Parameters
     ----------
-    geometry : TwoViewGeometry
+    geometry : TwoViewGeometry or FundamentalGeometry
         The known pose of image 2 (train) relative to image 1 (query):
-        ``X2 = R @ X1 + t``.
+        ``X2 = R @ X1 + t``; with a covariance
+        (:meth:`~episeg_cv.TwoViewGeometry.with_covariance`) each query is
+        searched in its own band. Or an oriented fundamental matrix
+        (:func:`~episeg_cv.estimate_geometry`): the half-line from the epipole.
     normType : int, optional
         ``cv2.NORM_L2`` (SIFT), ``cv2.NORM_L1``, ``cv2.NORM_L2SQR`` or
         ``cv2.NORM_HAMMING`` (ORB, AKAZE, BRISK).
@@ -77,8 +80,10 @@ class SegmentMatcher:
     search : SearchConfig, optional
         Where the candidates are: ``constraint`` (``"segment"``, ours;
         ``"line"``, plain epipolar filtering by the same code path; ``"none"``,
-        exactly ``cv2.BFMatcher``), ``tol`` (pixels to the segment, default 2)
-        and ``depth_range`` (bounds on the depth in camera 1, unit of ``t``).
+        exactly ``cv2.BFMatcher``), ``tol`` (pixels to the segment, default 2;
+        ``"auto"`` estimates it, and corrects the pose when that matters, from
+        each call's keypoints: :func:`~episeg_cv.estimate_band`) and
+        ``depth_range`` (bounds on the depth in camera 1, unit of ``t``).
     rule : AcceptRule, optional
         The acceptance rule of :meth:`match`: ``ratio``, ``mutual``, ``pad``
         (defaults chosen on the benchmark). It does not apply to
@@ -122,7 +127,7 @@ class SegmentMatcher:
 
     # the settings, as attributes (read-only: make a new matcher to change them)
     crossCheck = property(lambda self: self.rule.cross_check, doc="Mutual nearest neighbours in both directions.")
-    tol = property(lambda self: self.search.tol, doc="Pixel tolerance of the constraint.")
+    tol = property(lambda self: self.search.tol, doc="Pixel tolerance of the constraint (a float or an AutoTol).")
     depth_range = property(lambda self: self.search.depth_range, doc="Depth bounds in camera 1.")
     constraint = property(lambda self: self.search.constraint, doc="'segment', 'line' or 'none'.")
     ratio = property(lambda self: self.rule.ratio, doc="Ratio of the acceptance rule.")
@@ -156,7 +161,7 @@ class SegmentMatcher:
             return []
         if self.constraint == "none":
             return list(self._bf().match(self._cv(d1), self._cv(d2)))
-        return _to_dmatches(*guided.match(inp, self.geometry, self.search, self.rule))
+        return _to_dmatches(*auto.match(inp, self.geometry, self.search, self.rule))
 
     def knnMatch(self, queryDescriptors, trainDescriptors, queryKeypoints, trainKeypoints, k) -> list:
         """The ``k`` nearest candidates of each query: one list per query, shorter when fewer exist."""
@@ -173,8 +178,8 @@ class SegmentMatcher:
             return [list(m) for m in self._bf().knnMatch(self._cv(d1), self._cv(d2), k=k)]
         if self.crossCheck:
             rule = AcceptRule(ratio=1.0, mutual=False, pad=0, cross_check=True)
-            return _per_query(len(d1), *guided.match(inp, self.geometry, self.search, rule))
-        return _per_query(len(d1), *guided.knn(inp, self.geometry, self.search, k).pairs())
+            return _per_query(len(d1), *auto.match(inp, self.geometry, self.search, rule))
+        return _per_query(len(d1), *auto.knn(inp, self.geometry, self.search, k, self.rule).pairs())
 
     def radiusMatch(self, queryDescriptors, trainDescriptors, queryKeypoints, trainKeypoints, maxDistance) -> list:
         """All candidates within ``maxDistance`` of each query, nearest first: one list per query."""
@@ -187,7 +192,7 @@ class SegmentMatcher:
             return [[] for _ in range(len(d1))]
         if self.constraint == "none":
             return [list(m) for m in self._bf().radiusMatch(self._cv(d1), self._cv(d2), max_distance)]
-        return _per_query(len(d1), *guided.radius(inp, self.geometry, self.search, max_distance))
+        return _per_query(len(d1), *auto.radius(inp, self.geometry, self.search, max_distance, self.rule))
 
     # -- after matching ----------------------------------------------------------------
     def _pairs_and_points(self, matches, queryKeypoints, trainKeypoints):

@@ -8,8 +8,8 @@ import numpy as np
 
 from .._validation import as_depth_range
 
-__all__ = ["Formatter", "positive_int", "nonneg_float", "depth", "ratio_arg", "parse_point", "depth_range_arg",
-           "add_verbosity"]
+__all__ = ["Formatter", "positive_int", "nonneg_float", "tol_arg", "depth", "ratio_arg", "parse_point",
+           "depth_range_arg", "add_verbosity"]
 
 
 class Formatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
@@ -45,6 +45,16 @@ def nonneg_float(text):
     if not np.isfinite(v) or v < 0:
         raise argparse.ArgumentTypeError(f"expected a finite number >= 0, got {text!r}")
     return v
+
+
+def tol_arg(text):
+    """A pixel tolerance (a finite number >= 0) or ``auto``."""
+    if text.strip().lower() == "auto":
+        return "auto"
+    try:
+        return nonneg_float(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"expected a number of pixels >= 0 or 'auto', got {text!r}") from None
 
 
 def depth(text):

@@ -6,11 +6,12 @@ from pathlib import Path
 
 from ..distortion import undistort_points
 from ..drawing import draw_matches, save_image
+from ..estimation import GeometryEstimationError, match_without_pose
 from ..features import PRESETS
 from ..io.matches import FORMAT, FORMAT_VERSION, json_number, write_matches
-from ..matching import AcceptRule, SearchConfig
-from .args import Formatter, depth, depth_range_arg, nonneg_float, positive_int, ratio_arg
-from .common import MAX_LINES, detect, labels_of, load_calib, read_image, run_matching, versions
+from ..matching import AcceptRule, SearchConfig, estimate_band
+from .args import Formatter, depth, depth_range_arg, positive_int, ratio_arg, tol_arg
+from .common import MAX_LINES, detect, image_size, labels_of, load_calib, read_image, run_matching, versions
 from .console import Console, UserError
 
 MATCH_SUFFIXES = (".json", ".npz", ".csv")
@@ -18,25 +19,32 @@ MATCH_SUFFIXES = (".json", ".npz", ".csv")
 
 def add_parser(sub, parents) -> None:
     p = sub.add_parser("match", parents=parents, formatter_class=Formatter,
-                       help="match two images with a known calibration",
+                       help="match two images (with a calibration, or none)",
                        description="Detect keypoints in both images, undistort them if the calibration has "
                                    "distortion coefficients, and match them on the epipolar segment (or line, or "
                                    "with plain cv2.BFMatcher for --constraint none: ratio test, or crossCheck with "
                                    "--cross-check). Write the matches (JSON/NPZ/CSV, see episeg_cv.io.matches for "
-                                   "the layout) and a figure.",
+                                   "the layout) and a figure. Without --calib, the geometry is estimated from the "
+                                   "images (an oriented fundamental matrix: the half-line from the epipole); with a "
+                                   "calibration that holds the intrinsics but no pose, the pose is estimated "
+                                   "(essential matrix, then refined) and the full segments are used.",
                        epilog="examples:\n  episeg match left.png right.png --calib stereo.yml --out matches.json\n"
                               "  episeg match a.png b.png --calib calib.json --detector orb --constraint line "
-                              "--figure m.png\n\ncalibration files: JSON (K1, K2, R, t, image_size1, image_size2; or "
+                              "--figure m.png\n  episeg match a.png b.png --calib odometry.json --tol auto\n"
+                              "  episeg match a.png b.png --out matches.json       (no calibration at all)\n\n"
+                              "calibration files: JSON (K1, K2, R, t, image_size1, image_size2; or "
                               "per-camera world poses; or P1, P2) or OpenCV YAML/XML (M1, D1, M2, D2, R, T); see "
-                              "episeg_cv.load_calibration.")
+                              "episeg_cv.load_calibration. Leave the pose out (K1, K2 only) to estimate it.")
     p.add_argument("image1", help="query image (view 1)")
     p.add_argument("image2", help="train image (view 2)")
-    p.add_argument("--calib", required=True, metavar="FILE", help="calibration file (.json, .yml, .yaml, .xml)")
+    p.add_argument("--calib", default=None, metavar="FILE",
+                   help="calibration file (.json, .yml, .yaml, .xml); none: estimate the geometry from the images")
     p.add_argument("--detector", choices=("sift", "orb", "akaze"), default="sift", help="keypoint detector")
     p.add_argument("--constraint", choices=("segment", "line", "none"), default="segment",
                    help="search the correct segment, the whole epipolar line, or everywhere")
-    p.add_argument("--tol", type=nonneg_float, default=SearchConfig().tol, metavar="PX",
-                   help="pixel tolerance of the constraint")
+    p.add_argument("--tol", type=tol_arg, default=_default_tol(), metavar="PX|auto",
+                   help="pixel tolerance of the constraint, or 'auto': estimated (and the pose corrected when that "
+                        "matters) from the keypoints; an estimated geometry always gets its own")
     p.add_argument("--depth-range", type=depth, nargs=2, metavar=("ZMIN", "ZMAX"), default=None,
                    help="depth bounds in camera 1, in the unit of t (ZMAX may be inf); default 0 inf")
     p.add_argument("--ratio", type=ratio_arg, default=None,
@@ -48,38 +56,79 @@ def add_parser(sub, parents) -> None:
     p.set_defaults(func=run)
 
 
+def _default_tol():
+    tol = SearchConfig().tol
+    return "auto" if SearchConfig().auto is not None else tol
+
+
 def run(args, console: Console) -> int:
     if args.out is not None and Path(args.out).suffix.lower() not in MATCH_SUFFIXES:
         raise UserError(f"--out must end in .json, .npz or .csv, got {args.out!r}")
     search = SearchConfig(tol=args.tol, depth_range=depth_range_arg(args.depth_range), constraint=args.constraint)
     rule = AcceptRule(cross_check=args.cross_check, **({} if args.ratio is None else {"ratio": args.ratio}))
     img1, img2 = read_image(args.image1), read_image(args.image2)
-    calib = load_calib(args.calib, img1, img2, console)
-    geom = calib.geometry
+    calib = load_calib(args.calib, img1, img2, console) if args.calib is not None else None
+    posed = calib is not None and calib.has_pose
+    if not posed and args.constraint == "none":
+        raise UserError("--constraint none matches with plain cv2.BFMatcher and needs no geometry; give a "
+                        "calibration with a pose, or use --constraint segment or line")
+    if calib is None and search.bounded:
+        raise UserError("--depth-range needs a calibration (without one, depth has no unit)")
     prog = console.progress(4 + (args.figure is not None), "match")
     features = PRESETS["opencv"].replace(detector=args.detector, max_features=args.max_features)
     (p1, des1), (p2, des2) = detect(img1, features), detect(img2, features)
     prog.step(f"{args.detector}: {len(p1)} and {len(p2)} keypoints")
-    u1, u2 = undistort_points(p1, calib.K1, calib.dist1), undistort_points(p2, calib.K2, calib.dist2)
-    if calib.has_distortion:
+    if calib is not None:
+        u1, u2 = undistort_points(p1, calib.K1, calib.dist1), undistort_points(p2, calib.K2, calib.dist2)
+    else:
+        u1, u2 = p1, p2
+    if calib is not None and calib.has_distortion:
         console.info("undistorted the keypoints with cv2.undistortPoints (P = K) before matching")
-    prog.step("undistorted" if calib.has_distortion else "no distortion")
-    pairs, dist = run_matching(geom, des1, des2, u1, u2, features.norm, search, rule)
+    prog.step("undistorted" if calib is not None and calib.has_distortion else "no distortion")
+    pose = {"source": "calibration"}
+    if posed:
+        geom = calib.geometry
+        if search.auto is not None and search.constraint != "none" and len(des1) and len(des2):
+            est = estimate_band(des1, des2, u1, u2, geom, norm=features.norm, search=search, rule=rule)
+            geom, search = est.geometry, search.replace(tol=est.tol)
+            pose.update(tol="auto", estimated_tol=est.tol, pose_kept=est.pose_kept,
+                        rotation_change_deg=est.rotation_change_deg,
+                        translation_change_deg=est.translation_change_deg)
+            console.info(f"tol auto: {est.tol:.2f} px, pose {'kept' if est.pose_kept else 'corrected'} "
+                         f"({est.rotation_change_deg:.3f} deg, t direction {est.translation_change_deg:.3f} deg)")
+        pairs, dist = run_matching(geom, des1, des2, u1, u2, features.norm, search, rule)
+    else:
+        sizes = dict(image_size1=image_size(img1), image_size2=image_size(img2))
+        if calib is not None:
+            sizes.update(K1=calib.K1, K2=calib.K2)
+        try:
+            pairs, dist, est = match_without_pose(des1, des2, u1, u2, norm=features.norm, search=search, rule=rule,
+                                                  **sizes)
+        except GeometryEstimationError as exc:
+            raise UserError(f"cannot estimate the geometry from the images: {exc}") from None
+        geom, search = est.geometry, search.replace(tol=est.tol)
+        pose = {"source": f"estimated ({est.method} matrix)", "estimated_tol": est.tol,
+                "first_pass": len(est.first_pass), "inliers": len(est.inliers)}
+        console.info(f"no pose: {est.method} matrix from {len(est.inliers)} of {len(est.first_pass)} first-pass "
+                     f"matches; band {est.tol:.2f} px")
     prog.step(f"{len(pairs)} matches")
     labels, counts = labels_of(pairs, u1, u2, geom, search)
     prog.step("labelled")
     meta = {"format": FORMAT, "format_version": FORMAT_VERSION, "command": "match", **versions(),
-            "image1": str(args.image1), "image2": str(args.image2), "calib": str(args.calib),
+            "image1": str(args.image1), "image2": str(args.image2),
+            "calib": None if args.calib is None else str(args.calib),
             "convention": "X2 = R X1 + t; pixel centres at integer coordinates",
-            "undistorted": calib.has_distortion,
+            "undistorted": calib is not None and calib.has_distortion, "pose": pose,
             "settings": {"detector": args.detector, "max_features": args.max_features, "constraint": args.constraint,
-                         "tol": args.tol, "depth_range": [json_number(z) for z in search.depth_range],
+                         "tol": args.tol if isinstance(args.tol, str) else float(args.tol),
+                         "depth_range": [json_number(z) for z in search.depth_range],
                          "cross_check": args.cross_check,
                          "ratio": None if args.constraint == "none" and args.cross_check else rule.ratio},
             "counts": {"keypoints1": len(p1), "keypoints2": len(p2), "matches": len(pairs), **counts}}
     written = []
     if args.out is not None:
-        extra = {"keypoints1_undistorted": u1, "keypoints2_undistorted": u2} if calib.has_distortion else None
+        extra = {"keypoints1_undistorted": u1, "keypoints2_undistorted": u2} \
+            if calib is not None and calib.has_distortion else None
         written.append(write_matches(args.out, meta, p1, p2, pairs, dist, labels, extra))
     if args.figure is not None:
         written.append(save_image(args.figure, draw_matches(img1, img2, p1, p2, pairs, max_lines=MAX_LINES, rng=0)))

@@ -225,6 +225,8 @@ def match_model(model, image_dir, database, *, pairs=None, neighbors=None,
         raise ValueError("constraint must be 'segment' or 'line' here ('none' has no geometry to use)")
     if search.bounded:
         raise ValueError("search.depth_range must be (0, inf) for a collection; give depth_range= instead")
+    if search.auto is not None:
+        raise ValueError("tol='auto' is not supported for collections (yet): give a number of pixels")
     features = _feature_config(features)
     workers = as_positive_int(workers, "workers")
     image_dir = Path(image_dir)

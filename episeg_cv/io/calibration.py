@@ -48,9 +48,10 @@ class Calibration:
     ----------
     K1, K2 : (3, 3) float64
         Intrinsics in pixels (pixel centres at integer coordinates).
-    R : (3, 3) float64
-        Rotation from camera 1 to camera 2: ``X2 = R @ X1 + t``.
-    t : (3,) float64
+    R : (3, 3) float64 or None
+        Rotation from camera 1 to camera 2: ``X2 = R @ X1 + t``; None (with
+        ``t``) when the file gives the intrinsics only (:attr:`has_pose`).
+    t : (3,) float64 or None
         Translation, in the file's length unit (the unit of a depth range).
     image_size1, image_size2 : (int, int) or None
         ``(width, height)``; None when the file does not say (see
@@ -86,8 +87,13 @@ class Calibration:
         src = self.source
         object.__setattr__(self, "K1", _checked(as_camera_matrix, self.K1, "K1", src))
         object.__setattr__(self, "K2", _checked(as_camera_matrix, self.K2, "K2", src))
-        object.__setattr__(self, "R", _checked(as_rotation, self.R, "R", src))
-        object.__setattr__(self, "t", _checked(as_vector3, self.t, "t", src))
+        if (self.R is None) != (self.t is None):
+            given, missing = ("R", "t") if self.t is None else ("t", "R")
+            raise ValueError(f"{src}: the pose has {given} but no {missing}: give both, or neither to estimate the "
+                             "pose from the images")
+        if self.R is not None:
+            object.__setattr__(self, "R", _checked(as_rotation, self.R, "R", src))
+            object.__setattr__(self, "t", _checked(as_vector3, self.t, "t", src))
         for name in ("image_size1", "image_size2"):
             v = getattr(self, name)
             if v is not None:
@@ -107,14 +113,23 @@ class Calibration:
         return self.dist1 is not None or self.dist2 is not None
 
     @property
+    def has_pose(self) -> bool:
+        """True when the file gives the relative pose ``R, t`` (not only the intrinsics)."""
+        return self.R is not None
+
+    @property
     def geometry(self) -> TwoViewGeometry:
         """The :class:`~episeg_cv.TwoViewGeometry` of the (undistorted) pair.
 
         Raises
         ------
         ValueError
-            The image sizes are unknown; use :meth:`with_image_sizes` first.
+            The image sizes are unknown (use :meth:`with_image_sizes` first), or
+            there is no pose (estimate it: :func:`~episeg_cv.estimate_geometry`).
         """
+        if not self.has_pose:
+            raise ValueError(f"{self.source}: no pose (R, t), only the intrinsics; estimate the pose from the images "
+                             "(episeg_cv.estimate_geometry with K1, K2, or episeg match)")
         if self.image_size1 is None or self.image_size2 is None:
             raise ValueError(f"{self.source}: image sizes unknown; add 'image_size1' and 'image_size2' "
                              "([width, height]) to the file or pass them to load_calibration")
@@ -167,6 +182,11 @@ def load_calibration(path, image_size1=None, image_size2=None) -> Calibration:
     Accepted layouts (keys are case-sensitive; ``t`` may be ``(3,)``, ``(3, 1)``
     or ``(1, 3)``; sizes are ``[width, height]``; distortion is optional and
     uses OpenCV's coefficient order ``k1, k2, p1, p2[, k3, ...]``):
+
+    Every layout may leave out the pose (``R``, ``t``, ``T``, ``R1``...) to give
+    the intrinsics only: :attr:`Calibration.has_pose` is then False and the pose
+    is to be estimated from the images (:func:`~episeg_cv.estimate_geometry`).
+    Part of a pose (``R`` without ``t``) is an error.
 
     1. Relative pose, ``X2 = R X1 + t``::
 
@@ -426,11 +446,15 @@ def _from_mapping(data: dict, source: str) -> Calibration:
         for i, cam in enumerate(cams):
             where = f"{source}: cameras[{i}]"
             Ks.append(_matrix(cam, "K", (3, 3), where))
-            Rs.append(_matrix(cam, "R", (3, 3), where))
-            ts.append(_matrix(cam, "t", (3,), where))
+            _pose_keys(cam, (("R",), ("t",)), where)
+            Rs.append(_matrix(cam, "R", (3, 3), where, required=False))
+            ts.append(_matrix(cam, "t", (3,), where, required=False))
             sizes.append(_size(cam, ("image_size", ("width", "height")), where) or (size1, size2)[i])
             dists.append(as_distortion(cam.get("dist"), "dist", where))
-        R, t = _relative(Rs, ts, source)
+        if (Rs[0] is None) != (Rs[1] is None):
+            raise ValueError(f"{source}: one camera has a pose (R, t) and the other not: give both, or neither to "
+                             "estimate the pose from the images")
+        R, t = _relative(Rs, ts, source) if Rs[0] is not None else (None, None)
         return Calibration(Ks[0], Ks[1], R, t, sizes[0], sizes[1], dists[0], dists[1], source)
 
     if "P1" in data and "P2" in data and "K1" not in data and "M1" not in data:
@@ -447,8 +471,9 @@ def _from_mapping(data: dict, source: str) -> Calibration:
         # cv2.stereoCalibrate names
         K1 = _matrix(data, "M1", (3, 3), source)
         K2 = _matrix(data, "M2", (3, 3), source)
-        R = _matrix(data, "R", (3, 3), source)
-        t = _matrix(data, "T", (3,), source)
+        _pose_keys(data, (("R",), ("T", "t")), source)
+        R = _matrix(data, "R", (3, 3), source, required=False)
+        t = _matrix(data, "T" if "T" in data else "t", (3,), source, required=False)
         return Calibration(K1, K2, R, t, size1, size2, get_dist("D1", "dist1"), get_dist("D2", "dist2"), source)
 
     K = _matrix(data, "K", (3, 3), source, required=False)
@@ -456,14 +481,34 @@ def _from_mapping(data: dict, source: str) -> Calibration:
     K2 = _matrix(data, "K2", (3, 3), source, required=K is None)
     K1 = K if K1 is None else K1
     K2 = K if K2 is None else K2
-    if "R1" in data or "R2" in data:  # flat world poses
+    if any(k in data for k in ("R1", "R2", "t1", "t2")):  # flat world poses
+        _pose_keys(data, (("R1",), ("R2",), ("t1",), ("t2",)), source)
         Rs = [_matrix(data, "R1", (3, 3), source), _matrix(data, "R2", (3, 3), source)]
         ts = [_matrix(data, "t1", (3,), source), _matrix(data, "t2", (3,), source)]
         R, t = _relative(Rs, ts, source)
-    else:
+    elif _pose_keys(data, (("R",), ("t", "T")), source):
         R = _matrix(data, "R", (3, 3), source)
         t = _matrix(data, "t", (3,), source) if "t" in data or "T" not in data else _matrix(data, "T", (3,), source)
+    else:  # the intrinsics only: the pose is to be estimated from the images
+        R = t = None
     return Calibration(K1, K2, R, t, size1, size2, get_dist("dist1", "D1"), get_dist("dist2", "D2"), source)
+
+
+def _pose_keys(data: dict, groups, source) -> bool:
+    """Whether the pose is given (True) or absent (False); ``ValueError`` when only part of it is.
+
+    ``groups`` lists the keys of a whole pose, each as a tuple of alternative names (``("t", "T")``).
+    """
+    present = [[k for k in g if k in data and data[k] is not None] for g in groups]
+    if not any(present):
+        return False
+    missing = [g[0] for g, p in zip(groups, present) if not p]
+    if missing:
+        given = ", ".join(k for p in present for k in p)
+        shape = "a 3x3 matrix" if missing[0].startswith("R") else "a vector of 3 numbers"
+        raise ValueError(f"{source}: missing key '{missing[0]}' ({shape}): a partial pose ({given} given); give the "
+                         "whole pose, or none of it (the intrinsics only) to estimate the pose from the images")
+    return True
 
 
 def _relative(Rs, ts, source):
@@ -512,7 +557,9 @@ def save_calibration(path, calibration: Calibration) -> Path:
     path = output_file(path, "calibration file")
     if path.suffix.lower() == ".json":
         out = {"convention": "X2 = R X1 + t; pixel centres at integer coordinates; image_size = [width, height]",
-               "K1": c.K1.tolist(), "K2": c.K2.tolist(), "R": c.R.tolist(), "t": c.t.tolist()}
+               "K1": c.K1.tolist(), "K2": c.K2.tolist()}
+        if c.has_pose:
+            out.update(R=c.R.tolist(), t=c.t.tolist())
         for name in ("image_size1", "image_size2"):
             if getattr(c, name) is not None:
                 out[name] = list(getattr(c, name))
@@ -531,8 +578,9 @@ def save_calibration(path, calibration: Calibration) -> Path:
             fs.write("D1", np.zeros((1, 5)) if c.dist1 is None else c.dist1.reshape(1, -1))
             fs.write("M2", c.K2)
             fs.write("D2", np.zeros((1, 5)) if c.dist2 is None else c.dist2.reshape(1, -1))
-            fs.write("R", c.R)
-            fs.write("T", c.t.reshape(3, 1))
+            if c.has_pose:
+                fs.write("R", c.R)
+                fs.write("T", c.t.reshape(3, 1))
             for name in ("image_size1", "image_size2"):
                 if getattr(c, name) is not None:
                     fs.write(name, np.array(getattr(c, name), dtype=np.int32))

@@ -46,8 +46,8 @@ class CandidateIndex:
 
     Parameters
     ----------
-    geometry : TwoViewGeometry
-        Known pose; ``X2 = R @ X1 + t``.
+    geometry : TwoViewGeometry or FundamentalGeometry
+        Known pose; ``X2 = R @ X1 + t`` (a covariance is not used: the fixed ``tol``).
     points1 : (N1, 2) array_like
         Query pixels in image 1.
     points2 : (N2, 2) array_like
@@ -79,6 +79,8 @@ class CandidateIndex:
     def __init__(self, geometry: TwoViewGeometry, points1, points2, *, search: SearchConfig | None = None,
                  bucket_size: int = 64, **options):
         search, _ = resolve(search, None, options, takes_rule=False)
+        if search.auto is not None:
+            raise ValueError("CandidateIndex needs a numeric tol; estimate one with estimate_band (tol='auto')")
         self._setup(as_geometry(geometry), as_points(points1, "points1"), as_points(points2, "points2"), search,
                     bucket_size)
 

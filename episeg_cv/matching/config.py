@@ -20,9 +20,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._validation import as_choice, as_count, as_depth_range, as_nonnegative, as_ratio
+from .._validation import as_choice, as_count, as_depth_range, as_nonnegative, as_positive_int, as_ratio
 
-__all__ = ["SearchConfig", "AcceptRule", "CONSTRAINTS", "resolve"]
+__all__ = ["SearchConfig", "AcceptRule", "AutoTol", "CONSTRAINTS", "resolve", "as_tol"]
 
 #: The constraints. ``"none"`` (no geometry) is plain ``cv2.BFMatcher`` and has no candidate index.
 CONSTRAINTS = ("segment", "line", "none")
@@ -34,9 +34,12 @@ class SearchConfig:
 
     Attributes
     ----------
-    tol : float
+    tol : float or AutoTol
         Pixel distance from a keypoint of image 2 to the query's segment (or
-        line) within which it is a candidate. Default 2.
+        line) within which it is a candidate. Default 2. ``"auto"`` (stored as
+        ``AutoTol()``) or an :class:`AutoTol` asks the matcher to estimate the
+        band, and to correct the pose if that matters, from the data
+        (:func:`~episeg_cv.estimate_band`).
     depth_range : (zmin, zmax)
         Bounds on the depth ``z1`` in camera 1, in the unit of ``t``: two
         scalars, or two ``(N,)`` arrays for per-query bounds.
@@ -49,10 +52,12 @@ class SearchConfig:
     --------
     >>> SearchConfig(tol=4).replace(constraint="line")
     SearchConfig(tol=4.0, depth_range=(0.0, inf), constraint='line')
+    >>> SearchConfig(tol="auto").auto
+    AutoTol()
     >>> SearchConfig(tol=-1)
     Traceback (most recent call last):
     ...
-    ValueError: tol must be a finite number >= 0, got -1
+    ValueError: tol must be a finite number >= 0, 'auto' or an AutoTol, got -1
     """
 
     tol: float = 2.0
@@ -60,7 +65,7 @@ class SearchConfig:
     constraint: str = "segment"
 
     def __post_init__(self):
-        object.__setattr__(self, "tol", as_nonnegative(self.tol, "tol"))
+        object.__setattr__(self, "tol", as_tol(self.tol, "tol"))
         zmin, zmax = as_depth_range(self.depth_range, None)
         bounds = tuple(float(z) if z.ndim == 0 else z for z in (zmin, zmax))
         for z in bounds:
@@ -74,6 +79,11 @@ class SearchConfig:
         """Whether the depth range says more than ``(0, inf)``."""
         zmin, zmax = self.depth_range
         return bool(np.any(np.asarray(zmin) > 0) or np.any(np.isfinite(zmax)))
+
+    @property
+    def auto(self) -> "AutoTol | None":
+        """The :class:`AutoTol` options when ``tol`` is to be estimated, else None."""
+        return self.tol if isinstance(self.tol, AutoTol) else None
 
     def replace(self, **changes) -> "SearchConfig":
         """A copy with some fields changed (and checked)."""
@@ -91,7 +101,148 @@ class SearchConfig:
 
     def __repr__(self):
         dr = tuple(z if isinstance(z, float) else f"<array of {len(z)}>" for z in self.depth_range)
-        return f"SearchConfig(tol={self.tol}, depth_range={dr}, constraint={self.constraint!r})"
+        tol = "'auto'" if self.tol == AutoTol() else self.tol
+        return f"SearchConfig(tol={tol}, depth_range={dr}, constraint={self.constraint!r})"
+
+
+def _optional(x, name, check):
+    return None if x is None else check(x, name)
+
+
+def _positive(x, name):
+    v = as_nonnegative(x, name)
+    if v <= 0:
+        raise ValueError(f"{name} must be a finite number > 0, got {x!r}")
+    return v
+
+
+@dataclass(frozen=True)
+class AutoTol:
+    """How ``tol="auto"`` finds the band (:func:`~episeg_cv.estimate_band`).
+
+    The defaults are ``tol="auto"``; the constants and why they were chosen are
+    in ``docs/geometry.md`` ("Poses that are off"). In short: confident
+    matches (mutual, ratio below ``strict_ratio``) from a wide band around the
+    given pose, and from plain nearest neighbours when needed; a robust
+    refinement of ``R`` and the direction of ``t`` on their distances to the
+    segment; the given pose is kept unless the correction matters; the band is
+    ``k`` robust standard deviations of those distances, clamped to
+    ``[tol_min, tol_max]``.
+
+    Attributes
+    ----------
+    band : float or None
+        Half-width of the first, wide pass in pixels; None: ``max(16, 0.08 *
+        diagonal of image 2)`` (64 px at 640 x 480).
+    strict_ratio : float in (0, 1]
+        Ratio of the strict rule that selects the confident matches. Default 0.6.
+    k : float > 0
+        The band is ``k`` sigma. Default 3.
+    tol_min : float >= 0
+        Smallest band, pixels. Default 2 (keypoint noise; the fixed default).
+    tol_max : float or None
+        Largest band, pixels; None: ``band``.
+    refine : bool
+        Correct ``R`` and the direction of ``t`` (needs a calibrated geometry).
+        Default True.
+    unguided_pass : {"auto", True, False}
+        Also take confident matches from plain mutual nearest neighbours over
+        all keypoints (covers pose errors larger than ``band``): always, never,
+        or ``"auto"`` (default), when the wide pass finds fewer than
+        ``min_support`` matches that agree with the refined pose.
+    keep_test : float
+        Chi-square threshold (5 degrees of freedom, 99 %: 15.09) below which the
+        correction is not significant and the given pose is kept.
+    keep_px : float or None
+        The given pose is also kept when the correction moves the lines by less
+        than this at 95 % of the confident matches; None: ``tol_min / 2``.
+    prior_deg : float > 0
+        Prior standard deviation of the correction (rotation, and direction of
+        ``t``), degrees, when the geometry has no covariance. Default 10.
+    max_refine_matches : int
+        Confident matches used by the refinement, spread over image 1. Default 300.
+    min_matches : int
+        Fewer confident matches than this: no estimate; the given pose with
+        ``tol = 2 tol_min``. Default 12.
+    min_support : int
+        See ``unguided_pass``. Default 50.
+
+    Examples
+    --------
+    >>> AutoTol(k=4).replace(tol_min=1.5).tol_min
+    1.5
+    >>> AutoTol(k=0)
+    Traceback (most recent call last):
+    ...
+    ValueError: k must be a finite number > 0, got 0
+    """
+
+    band: float | None = None
+    strict_ratio: float = 0.6
+    k: float = 3.0
+    tol_min: float = 2.0
+    tol_max: float | None = None
+    refine: bool = True
+    unguided_pass: object = "auto"
+    keep_test: float = 15.09
+    keep_px: float | None = None
+    prior_deg: float = 10.0
+    max_refine_matches: int = 300
+    min_matches: int = 12
+    min_support: int = 50
+
+    def __post_init__(self):
+        for name, check in (("band", _positive), ("tol_max", _positive), ("keep_px", as_nonnegative)):
+            object.__setattr__(self, name, _optional(getattr(self, name), name, check))
+        object.__setattr__(self, "strict_ratio", as_ratio(self.strict_ratio, "strict_ratio"))
+        for name in ("k", "prior_deg"):
+            object.__setattr__(self, name, _positive(getattr(self, name), name))
+        for name in ("tol_min", "keep_test"):
+            object.__setattr__(self, name, as_nonnegative(getattr(self, name), name))
+        object.__setattr__(self, "refine", bool(self.refine))
+        u = self.unguided_pass
+        if not (u == "auto" if isinstance(u, str) else isinstance(u, (bool, np.bool_))):
+            raise ValueError(f"unguided_pass must be 'auto', True or False, got {u!r}")
+        object.__setattr__(self, "unguided_pass", u if isinstance(u, str) else bool(u))
+        for name in ("max_refine_matches", "min_matches", "min_support"):
+            object.__setattr__(self, name, as_positive_int(getattr(self, name), name))
+        if self.min_matches < 8:
+            raise ValueError(f"min_matches must be at least 8 (the pose has 5 degrees of freedom), "
+                             f"got {self.min_matches}")
+        if self.tol_max is not None and self.tol_max < self.tol_min:
+            raise ValueError(f"tol_max must be >= tol_min, got {self.tol_max} < {self.tol_min}")
+
+    def replace(self, **changes) -> "AutoTol":
+        """A copy with some fields changed (and checked)."""
+        return dataclasses.replace(self, **changes)
+
+    def __repr__(self) -> str:  # only what differs from the defaults
+        changed = [f"{f.name}={getattr(self, f.name)!r}" for f in dataclasses.fields(self)
+                   if getattr(self, f.name) != f.default]
+        return f"AutoTol({', '.join(changed)})"
+
+    def first_band(self, image_size2) -> float:
+        """Half-width of the wide first pass for an image 2 of ``(width, height)`` pixels."""
+        return self.band if self.band is not None else max(16.0, 0.08 * float(np.hypot(*image_size2)))
+
+    def bounds(self, image_size2) -> tuple[float, float]:
+        """``(tol_min, tol_max)`` for an image 2 of ``(width, height)`` pixels."""
+        hi = self.tol_max if self.tol_max is not None else self.first_band(image_size2)
+        return self.tol_min, max(hi, self.tol_min)
+
+
+def as_tol(x, name: str = "tol"):
+    """A tolerance: a finite number >= 0 (as float), ``"auto"`` (as ``AutoTol()``) or an :class:`AutoTol`."""
+    if isinstance(x, AutoTol):
+        return x
+    if isinstance(x, str):
+        if x.strip().lower() == "auto":
+            return AutoTol()
+        raise TypeError(f"{name} must be a finite number >= 0, 'auto' or an AutoTol, got {x!r}")
+    try:
+        return as_nonnegative(x, name)
+    except (ValueError, TypeError) as exc:
+        raise type(exc)(f"{name} must be a finite number >= 0, 'auto' or an AutoTol, got {x!r}") from None
 
 
 @dataclass(frozen=True)

@@ -16,6 +16,12 @@ def keep_mask(pairs: np.ndarray, points1: np.ndarray, points2: np.ndarray, geome
     """:func:`filter_pairs` on checked inputs."""
     if search.constraint == "none":
         return np.ones(len(pairs), dtype=bool)
+    if search.auto is not None or geometry.covariance is not None:
+        from .auto import plan_pairs  # (auto builds on guided matching, which this module does not need)
+        plan = plan_pairs(pairs, points1, points2, geometry, search)
+        if plan.bands is not None:
+            return plan.bands.contains(pairs[:, 0], points2[pairs[:, 1]])
+        geometry, search = plan.geometry, plan.search
     tol = search.tol
     seg = geometry.segments(points1, search.depth_range, margin=tol)
     i, j = pairs[:, 0], pairs[:, 1]
@@ -40,8 +46,15 @@ def keep_mask(pairs: np.ndarray, points1: np.ndarray, points2: np.ndarray, geome
 def explain(pairs: np.ndarray, points1: np.ndarray, points2: np.ndarray, geometry: TwoViewGeometry,
             search: SearchConfig) -> tuple[np.ndarray, dict]:
     """:func:`explain_pairs` on checked inputs."""
+    bands = None
+    if search.auto is not None or geometry.covariance is not None:
+        from .auto import plan_pairs
+        plan = plan_pairs(pairs, points1, points2, geometry, search.replace(constraint="segment"))
+        geometry, search, bands = plan.geometry, plan.search, plan.bands
     seg = geometry.segments(points1, search.depth_range, margin=search.tol).take(pairs[:, 0])
     labels = seg.classify(points2[pairs[:, 1]], search.tol)
+    if bands is not None:  # inside its band: on the segment, as far as the pose is known
+        labels[bands.contains(pairs[:, 0], points2[pairs[:, 1]])] = Rejection.ON_SEGMENT
     counts = {name: int((labels == code).sum()) for code, name in enumerate(Rejection.NAMES)}
     return labels, counts
 
@@ -61,10 +74,12 @@ def filter_pairs(pairs, points1, points2, geometry, *, search: SearchConfig | No
         ``(i1, i2)`` indices into ``points1`` and ``points2``.
     points1, points2 : (N1, 2), (N2, 2) array_like
         Keypoint pixels (pixel centres at integers).
-    geometry : TwoViewGeometry
-        Known pose, ``X2 = R @ X1 + t``.
+    geometry : TwoViewGeometry or FundamentalGeometry
+        Known pose, ``X2 = R @ X1 + t``; with a covariance, each pair is tested
+        against its query's band.
     search : SearchConfig, optional
-        ``tol`` (pixel distance to the segment or line), ``depth_range`` and
+        ``tol`` (pixel distance to the segment or line; ``"auto"``: estimated,
+        with the pose, from the pairs themselves), ``depth_range`` and
         ``constraint`` (``"none"`` keeps every pair); its fields may also be given as keywords.
 
     Returns

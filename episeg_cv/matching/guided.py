@@ -218,14 +218,17 @@ def knn_descriptors(descriptors1, descriptors2, points1, points2, geometry, *, k
         float32 (or float64) for L1/L2, uint8 for Hamming; same dtype and width.
     points1, points2 : (N1, 2), (N2, 2) array_like
         Keypoint pixels (OpenCV convention, pixel centres at integers).
-    geometry : TwoViewGeometry
-        Known pose, ``X2 = R @ X1 + t``.
+    geometry : TwoViewGeometry or FundamentalGeometry
+        Known pose, ``X2 = R @ X1 + t`` (or an oriented fundamental matrix).
     k : int
         Neighbours per query (>= 1).
     norm : {"l2", "l1", "l2sqr", "hamming"} or cv2.NORM_*
     search : SearchConfig, optional
-        The constraint (``"segment"`` or ``"line"``), ``tol`` (pixels) and
-        ``depth_range``; its fields may also be given as keywords.
+        The constraint (``"segment"`` or ``"line"``), ``tol`` (pixels, or
+        ``"auto"``: :func:`~episeg_cv.estimate_band`) and ``depth_range``; its
+        fields may also be given as keywords. A geometry with a covariance
+        (:meth:`~episeg_cv.TwoViewGeometry.with_covariance`) is searched in
+        per-query bands, ``tol`` then being the keypoint noise.
 
     Returns
     -------
@@ -251,19 +254,21 @@ def knn_descriptors(descriptors1, descriptors2, points1, points2, geometry, *, k
     >>> nb.indices.tolist(), nb.distances.astype(float).round(3).tolist()   # keypoint 2: wrong side
     ([[1, 0]], [[1.0, 1.414]])
     """
+    from . import auto  # (auto builds on this module: tol="auto" and covariance bands resolved there)
     search, _ = resolve(search, None, options, takes_rule=False)
     inputs = MatchInputs.check(descriptors1, descriptors2, points1, points2, norm)
     k = as_positive_int(k, "k")
-    return knn(inputs, as_geometry(geometry), search, k)
+    return auto.knn(inputs, as_geometry(geometry), search, k)
 
 
 def radius_descriptors(descriptors1, descriptors2, points1, points2, geometry, *, max_distance, norm="l2",
                        search: SearchConfig | None = None, **options) -> tuple[np.ndarray, np.ndarray]:
     """All candidates within ``max_distance`` (descriptor units): ``(pairs (K, 2), distances (K,))``,
     sorted by query, then by distance. Other parameters as in :func:`knn_descriptors`."""
+    from . import auto
     search, _ = resolve(search, None, options, takes_rule=False)
     inputs = MatchInputs.check(descriptors1, descriptors2, points1, points2, norm)
-    return radius(inputs, as_geometry(geometry), search, as_nonnegative(max_distance, "maxDistance"))
+    return auto.radius(inputs, as_geometry(geometry), search, as_nonnegative(max_distance, "maxDistance"))
 
 
 @dataclass(frozen=True)
@@ -287,6 +292,8 @@ class GuidedMatches:
         Number of candidates of every query.
     rule : AcceptRule
         The rule the ratios and mutual flags were computed under; the default of :meth:`keep`.
+    estimate : BandEstimate or None
+        With ``tol="auto"``: the band and the geometry used (:func:`~episeg_cv.estimate_band`).
     """
 
     pairs: np.ndarray
@@ -295,6 +302,7 @@ class GuidedMatches:
     mutual: np.ndarray
     candidates: np.ndarray
     rule: AcceptRule = AcceptRule()
+    estimate: object = None
 
     def keep(self, ratio: float | None = None, mutual: bool | None = None) -> np.ndarray:
         """(K,) bool: which pairs the rule keeps. ``ratio = 1`` disables the ratio test.
@@ -320,12 +328,13 @@ def guided_matches(descriptors1, descriptors2, points1, points2, geometry, *, no
     (:meth:`GuidedMatches.accept`), which is how ``benchmarks/compare.py``
     sweeps precision-recall curves. Parameters as in :func:`match_descriptors`.
     """
+    from . import auto
     search, rule = resolve(search, rule, options)
     inputs = MatchInputs.check(descriptors1, descriptors2, points1, points2, norm)
-    i, j, ratio, mutual, counts = nearest(inputs, as_geometry(geometry), search, rule, rng,
-                                          as_positive_int(bucket_size, "bucket_size"))
+    (i, j, ratio, mutual, counts), plan = auto.nearest(inputs, as_geometry(geometry), search, rule, rng,
+                                                       as_positive_int(bucket_size, "bucket_size"))
     return GuidedMatches(np.column_stack([i, j]).astype(np.intp), inputs.distances.exact(i, j), ratio, mutual, counts,
-                         rule)
+                         rule, plan.estimate)
 
 
 def match_descriptors(descriptors1, descriptors2, points1, points2, geometry, *, norm="l2",
@@ -368,6 +377,7 @@ def match_descriptors(descriptors1, descriptors2, points1, points2, geometry, *,
     >>> pairs.tolist(), dist.tolist()
     ([[0, 0]], [0.0])
     """
+    from . import auto
     search, rule = resolve(search, rule, options)
     inputs = MatchInputs.check(descriptors1, descriptors2, points1, points2, norm)
-    return match(inputs, as_geometry(geometry), search, rule, rng, as_positive_int(bucket_size, "bucket_size"))
+    return auto.match(inputs, as_geometry(geometry), search, rule, rng, as_positive_int(bucket_size, "bucket_size"))

@@ -158,7 +158,7 @@ def test_bad_data_gives_exit_1(tmp_path, args, message):
 
 @pytest.mark.parametrize("args", [
     ["match", IMG1, IMG2, "--calib", CALIB, "--bogus"],
-    ["match", IMG1, IMG2],
+    ["match", IMG1, IMG2, "--tol", "wide"],
     ["match", IMG1, IMG2, "--calib", CALIB, "--detector", "surf"],
     ["segments", IMG1, IMG2, "--calib", CALIB, "--points", "1;2"],
     ["nonsense"],
@@ -217,4 +217,67 @@ def test_bench_runs_the_scripts_and_passes_quick_only_where_accepted(tmp_path):
 def test_bench_without_a_benchmarks_folder(tmp_path):
     r = run("bench", "--dir", tmp_path / "nowhere")
     assert r.returncode == 1 and "benchmarks folder not found" in r.stderr
+    _check_no_traceback(r)
+
+
+# --- tol auto and no pose ------------------------------------------------------------------------
+def test_match_tol_auto_records_the_estimate(tmp_path):
+    out = tmp_path / "m.json"
+    r = run("match", IMG1, IMG2, "--calib", CALIB, "--tol", "auto", "--max-features", "800", "--out", out, "-v")
+    assert r.returncode == 0, r.stderr
+    meta = json.loads(out.read_text())["meta"]
+    assert meta["settings"]["tol"] == "auto" and meta["pose"]["source"] == "calibration"
+    assert meta["pose"]["estimated_tol"] == 2.0 and meta["pose"]["pose_kept"]
+    assert "tol auto: 2.00 px, pose kept" in r.stderr
+    assert set(json.loads(out.read_text())["labels"]) == {"on_segment"}
+
+
+@pytest.mark.parametrize("with_intrinsics, method", [(False, "fundamental"), (True, "essential")])
+def test_match_without_a_pose(tmp_path, with_intrinsics, method):
+    args = []
+    if with_intrinsics:
+        ref = json.loads((DEFAULT / "calib.json").read_text())
+        k = tmp_path / "k.json"
+        k.write_text(json.dumps({"K1": ref["K1"], "K2": ref["K2"]}))
+        args = ["--calib", k]
+    out = tmp_path / "m.json"
+    r = run("match", IMG1, IMG2, *args, "--max-features", "800", "--out", out, "-v")
+    assert r.returncode == 0, r.stderr
+    _check_no_traceback(r)
+    data = json.loads(out.read_text())
+    meta = data["meta"]
+    assert meta["pose"]["source"] == f"estimated ({method} matrix)"
+    assert 2.0 <= meta["pose"]["estimated_tol"] <= 8.0 and meta["pose"]["inliers"] > 50
+    assert meta["counts"]["matches"] == len(data["matches"]) > 100
+    assert meta["calib"] == (None if not with_intrinsics else str(args[1]))
+    assert f"no pose: {method} matrix from" in r.stderr
+    # the matches lie on the true segments (the bundled pair's calibration)
+    calib = load_calibration(CALIB)
+    from episeg_cv import filter_pairs
+    ok = filter_pairs(data["matches"], data["keypoints1"], data["keypoints2"], calib.geometry, tol=3.0)
+    assert ok.mean() > 0.95
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--tol", "bogus"], "expected a number of pixels >= 0 or 'auto'"),
+    (["--tol", "-2"], "expected a number of pixels >= 0 or 'auto'"),
+    (["--constraint", "none"], "--constraint none matches with plain cv2.BFMatcher and needs no geometry"),
+    (["--depth-range", "1", "5"], "--depth-range needs a calibration"),
+])
+def test_match_without_a_pose_errors(args, message):
+    r = run("match", IMG1, IMG2, *args, "--max-features", "300")
+    assert r.returncode in (1, 2) and message in r.stderr, r.stderr
+    _check_no_traceback(r)
+
+
+def test_match_partial_pose_and_featureless_images(tmp_path):
+    ref = json.loads((DEFAULT / "calib.json").read_text())
+    partial = tmp_path / "partial.json"
+    partial.write_text(json.dumps({"K1": ref["K1"], "K2": ref["K2"], "R": ref["R"]}))
+    r = run("match", IMG1, IMG2, "--calib", partial)
+    assert r.returncode == 1 and "partial.json: missing key 't' (a vector of 3 numbers): a partial pose" in r.stderr
+    blank = tmp_path / "blank.png"
+    cv2.imwrite(str(blank), np.full((120, 160), 128, np.uint8))
+    r = run("match", blank, blank)
+    assert r.returncode == 1 and "cannot estimate the geometry from the images: too few matches" in r.stderr
     _check_no_traceback(r)

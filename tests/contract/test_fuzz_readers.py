@@ -24,10 +24,8 @@ import copy
 import importlib
 import io
 import json
-import os
 import sys
 import tempfile
-import zipfile
 from pathlib import Path
 
 import numpy as np

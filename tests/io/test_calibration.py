@@ -227,3 +227,40 @@ def test_undistort_no_distortion_and_empty():
         undistort_points([1.0, 2.0], K, None)
     with pytest.raises(ValueError, match="4, 5, 8, 12 or 14"):
         undistort_points(p, K, [0.1, 0.2])
+
+
+# --- the intrinsics only: the pose is estimated from the images -----------------------------------------
+@pytest.mark.parametrize("layout", [
+    lambda r: {"K1": r["K1"], "K2": r["K2"], "image_size1": r["image_size1"], "image_size2": r["image_size2"]},
+    lambda r: {"K": r["K1"], "image_size": r["image_size1"]},
+    lambda r: {"M1": r["K1"], "M2": r["K2"], "D1": [0, 0, 0, 0, 0], "D2": [0, 0, 0, 0, 0]},
+    lambda r: {"cameras": [{"K": r["K1"]}, {"K": r["K2"]}]},
+])
+def test_intrinsics_without_a_pose(tmp_path, ref, layout):
+    c = load_calibration(_write(tmp_path, "k.json", layout(ref)), image_size1=(640, 480), image_size2=(640, 480))
+    assert not c.has_pose and c.R is None and c.t is None
+    np.testing.assert_allclose(c.K1, ref["K1"])
+    with pytest.raises(ValueError, match="k.json: no pose"):
+        c.geometry
+    back = load_calibration(save_calibration(tmp_path / "back.json", c))
+    assert not back.has_pose and back.image_size1 == (640, 480)
+    yml = load_calibration(save_calibration(tmp_path / "back.yml", c))
+    assert not yml.has_pose and np.allclose(yml.K2, ref["K2"])
+
+
+@pytest.mark.parametrize("data, message", [
+    ({"K": np.eye(3).tolist(), "t": [1, 0, 0]}, r"calib.json: missing key 'R' \(a 3x3 matrix\): a partial pose"),
+    ({"M1": np.eye(3).tolist(), "M2": np.eye(3).tolist(), "R": np.eye(3).tolist()}, r"missing key 'T'"),
+    ({"K": np.eye(3).tolist(), "R1": np.eye(3).tolist(), "t1": [0, 0, 0], "R2": np.eye(3).tolist()},
+     r"missing key 't2'"),
+    ({"cameras": [{"K": np.eye(3).tolist(), "R": np.eye(3).tolist(), "t": [0, 0, 0]}, {"K": np.eye(3).tolist()}]},
+     r"one camera has a pose"),
+])
+def test_partial_pose_is_an_error(tmp_path, data, message):
+    with pytest.raises(ValueError, match=message):
+        load_calibration(_write(tmp_path, "calib.json", data))
+
+
+def test_partial_pose_in_the_constructor():
+    with pytest.raises(ValueError, match="the pose has R but no t"):
+        Calibration(np.eye(3), np.eye(3), np.eye(3), None)

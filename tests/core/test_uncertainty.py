@@ -1,0 +1,211 @@
+"""Pose covariance: validation, propagation computed by hand, Monte Carlo, the band test, and matching in bands."""
+
+import cv2
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from episeg_cv import (SegmentMatcher, TwoViewGeometry, filter_pairs, guided_matches, knn_descriptors,
+                       match_descriptors, pose_covariance, radius_descriptors, scenes)
+from episeg_cv.geometry import point_segment_distance
+
+K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
+SIZE = dict(image_size1=(640, 480), image_size2=(640, 480))
+
+
+def _rot(w):
+    th = np.linalg.norm(w)
+    if th == 0:
+        return np.eye(3)
+    k = w / th
+    S = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(th) * S + (1 - np.cos(th)) * S @ S
+
+
+# --- validation -----------------------------------------------------------------------------------
+G = TwoViewGeometry(K, K, np.eye(3), [0, 0, 1], **SIZE)
+
+
+@pytest.mark.parametrize("cov, message", [
+    (np.eye(5), r"cov must have shape \(6, 6\)"), (np.eye(6)[:, :5], r"cov must have shape \(6, 6\)"),
+    (np.full((6, 6), np.nan), "cov must be finite"), (np.diag([1, 1, 1, 1, 1, -1.0]), "positive semi-definite"),
+    (np.eye(6) + np.triu(np.ones((6, 6)), 1), "symmetric"), ("eye", "cov must be a numeric array"),
+])
+def test_bad_covariance_is_refused(cov, message):
+    with pytest.raises((ValueError, TypeError), match=message):
+        G.with_covariance(cov)
+
+
+def test_with_covariance_makes_a_new_read_only_geometry():
+    C = np.diag([1e-6] * 3 + [1e-4] * 3)
+    g = G.with_covariance(C)
+    assert G.covariance is None and np.array_equal(g.covariance, C) and g is not G
+    with pytest.raises(ValueError):
+        g.covariance[0, 0] = 1.0
+    assert g.with_covariance(None).covariance is None
+    tiny = G.with_covariance(np.diag([1e-20] + [0.0] * 5) - 1e-30 * np.eye(6))  # rounding below 0 is accepted
+    assert tiny.covariance.shape == (6, 6)
+
+
+def test_inverse_propagates_the_covariance():
+    """dtheta' = -R^T dtheta, dt' = -R^T dt - R^T [t]x dtheta, checked by finite differences of the inverse pose."""
+    R0, t0 = _rot(np.array([0.1, -0.2, 0.05])), np.array([0.3, -1.0, 0.5])
+    g = TwoViewGeometry(K, K, R0, t0, **SIZE)
+    J = np.zeros((6, 6))
+    h = 1e-7
+    for k in range(6):
+        xi = np.zeros(6)
+        xi[k] = h
+        R, t = _rot(xi[:3]) @ R0, t0 + xi[3:]
+        Ri, ti = R.T, -R.T @ t
+        dR = Ri @ R0  # the inverse's left perturbation: Ri = expm([d]) R0^T
+        d = np.array([dR[2, 1] - dR[1, 2], dR[0, 2] - dR[2, 0], dR[1, 0] - dR[0, 1]]) / 2
+        J[:3, k], J[3:, k] = d / h, (ti - (-R0.T @ t0)) / h
+    C = np.diag([1e-4, 2e-4, 3e-4, 1e-2, 2e-2, 3e-2])
+    np.testing.assert_allclose(g.with_covariance(C).inverse().covariance, J @ C @ J.T, rtol=1e-5, atol=1e-12)
+    np.testing.assert_allclose(g.with_covariance(C).inverse().inverse().covariance, C, atol=1e-15)
+
+
+def test_pose_covariance_by_hand():
+    g = TwoViewGeometry(K, K, np.eye(3), [3, 0, 4], **SIZE)
+    C = pose_covariance(g, 2.0, 3.0, scale=0.1)
+    a, b = np.deg2rad(2.0), np.deg2rad(3.0)
+    np.testing.assert_allclose(C[:3, :3], a**2 / 3 * np.eye(3))
+    u = np.array([0.6, 0, 0.8])
+    np.testing.assert_allclose(C[3:, 3:], 25 * b**2 / 2 * (np.eye(3) - np.outer(u, u)) + 0.25 * np.outer(u, u))
+    assert np.all(C[:3, 3:] == 0)
+    with pytest.raises(ValueError, match="rotation_deg"):
+        pose_covariance(g, -1, 1)
+
+
+# --- propagation by hand ----------------------------------------------------------------------------
+def test_translation_moves_only_the_epipole_end():
+    """Camera 2 behind camera 1 (t = (0, 0, 1)): the segment of x1 runs from the epipole (image centre) to
+    p_inf = x1. A sideways error of t with sigma s moves the epipole by f s / t3 and p_inf not at all."""
+    C = np.zeros((6, 6))
+    C[3, 3] = C[4, 4] = 0.02**2
+    b = G.with_covariance(C).bands([[420.0, 240.0], [320.0, 340.0]], tol=0.0, kappa=1.0)
+    np.testing.assert_allclose(b.sigma_start, [10.0, 10.0], atol=1e-9)  # 500 * 0.02 / 1
+    np.testing.assert_allclose(b.sigma_end, [0.0, 0.0], atol=1e-9)
+    np.testing.assert_allclose(b.w_start, 10.0) and np.testing.assert_allclose(b.w_end, 0.0, atol=1e-9)
+    # along the line: the epipole moves along it by the same 10 px (isotropic), p_inf does not
+    np.testing.assert_allclose(b.e_start, 10.0, atol=1e-9)
+
+
+def test_rotation_moves_p_inf_by_f_times_the_angle():
+    """A rotation error about the y axis moves p_inf = x1 (on the image centre row, 100 px right of the
+    centre) sideways by f (1 + (100 / f)^2) * angle to first order, and the epipole not at all: across the
+    horizontal line that is 0, along it 520 * angle; about the x axis, across the line by f * angle."""
+    s = 1e-3
+    for axis, across, along in ((1, 0.0, 520 * s), (0, 500 * s, 0.0)):
+        C = np.zeros((6, 6))
+        C[axis, axis] = s**2
+        b = G.with_covariance(C).bands([[420.0, 240.0]], tol=0.0, kappa=1.0)
+        np.testing.assert_allclose(b.sigma_end, [across], atol=1e-9)
+        np.testing.assert_allclose(b.e_end, [along], atol=1e-9, rtol=1e-6)
+        np.testing.assert_allclose(b.sigma_start, [0.0], atol=1e-9)
+
+
+def test_quadrature_and_cap():
+    C = np.zeros((6, 6))
+    C[3, 3] = C[4, 4] = 0.02**2
+    b = G.with_covariance(C).bands([[420.0, 240.0]], tol=2.0, kappa=2.0)
+    np.testing.assert_allclose(b.w_start, [np.hypot(20.0, 2.0)]) and np.testing.assert_allclose(b.w_end, [2.0])
+    capped = G.with_covariance(C * 1e4).bands([[420.0, 240.0]], max_reach=50.0)
+    assert capped.w_start[0] == 50.0 and capped.reach[0] == 50.0
+
+
+@settings(max_examples=8, deadline=None)
+@given(seed=st.integers(0, 10**6))
+def test_monte_carlo_the_true_match_stays_in_its_band(seed):
+    """Draw poses from the covariance: the true match of each query (a 3-D point seen by the true pose)
+    is inside the band of the nominal pose at least 98 % of the time (99 % by construction, first order)."""
+    rng = np.random.default_rng(seed)
+    R0 = _rot(rng.normal(0, 0.2, 3))
+    t0 = rng.normal(0, 1, 3)
+    t0[2] = abs(t0[2]) + 0.2
+    g = TwoViewGeometry(K, K, R0, t0, **SIZE)
+    C = pose_covariance(g, 0.5, 2.5)
+    n = 400
+    x1 = rng.uniform([0, 0], [640, 480], (n, 2))
+    z = rng.uniform(2, 30, n)
+    b = g.with_covariance(C).bands(x1, tol=0.0)
+    val, vec = np.linalg.eigh(C)
+    L = vec * np.sqrt(np.maximum(val, 0.0))
+    inside, total = 0, 0
+    for _ in range(20):
+        xi = L @ rng.normal(size=6)
+        true = TwoViewGeometry(K, K, _rot(xi[:3]) @ R0, t0 + xi[3:], **SIZE)
+        x2, z2 = true.transfer(x1, z)
+        seen = (z2 > 0) & np.all((x2 > 0) & (x2 < [639, 479]), axis=1) & b.valid
+        inside += int(b.contains(np.flatnonzero(seen), x2[seen]).sum())
+        total += int(seen.sum())
+    assert total > 500 and inside >= 0.98 * total
+
+
+@settings(max_examples=25, deadline=None)
+@given(w=st.floats(0.5, 20), e=st.floats(0.5, 20), px=st.floats(-100, 700), py=st.floats(-100, 600))
+def test_band_with_equal_widths_is_the_stadium(w, e, px, py):
+    """With w = e everywhere the band is the set within w of the segment (the plain matcher's test)."""
+    from episeg_cv.uncertainty import EpipolarBands
+    P, Q = np.array([[100.0, 100.0]]), np.array([[500.0, 300.0]])
+    one = np.array([w])
+    b = EpipolarBands(P, Q, np.array([True]), one, one, one, one, one, one)
+    d = point_segment_distance(np.array([[px, py]]), P, Q)[0]
+    if abs(d - w) > 1e-6:
+        assert bool(b.contains([0], [[px, py]])[0]) == (d <= w)
+    # a trapezoid between the two half-widths, with elliptical caps
+    b2 = EpipolarBands(P, Q, np.array([True]), np.array([w]), np.array([w]), np.array([e]), np.array([e]), one, one)
+    m = (Q - P)[0] / np.linalg.norm(Q - P)
+    before = P[0] - 0.999 * e * m
+    assert b2.contains([0], [before])[0] and not b2.contains([0], [P[0] - 1.001 * e * m])[0]
+
+
+# --- matching in the bands -------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def forward():
+    pair = scenes.make_pair("forward", image_size=(320, 240))
+    sift = cv2.SIFT_create(nfeatures=1500, contrastThreshold=0.02)
+    (k1, d1), (k2, d2) = (sift.detectAndCompute(im, None) for im in (pair.image1, pair.image2))
+    p1, p2 = (np.array([k.pt for k in kk]) for kk in (k1, k2))
+    return pair, d1, d2, p1, p2
+
+
+@pytest.mark.parametrize("tol, cross_check", [(2.0, False), (5.0, False), (2.0, True)])
+def test_zero_covariance_gives_the_plain_matcher(forward, tol, cross_check):
+    pair, d1, d2, p1, p2 = forward
+    g = pair.geometry
+    a = guided_matches(d1, d2, p1, p2, g, tol=tol, cross_check=cross_check)
+    b = guided_matches(d1, d2, p1, p2, g.with_covariance(np.zeros((6, 6))), tol=tol, cross_check=cross_check)
+    assert np.array_equal(a.pairs, b.pairs) and np.array_equal(a.mutual, b.mutual)
+    np.testing.assert_array_equal(a.ratio, b.ratio) and np.testing.assert_array_equal(a.candidates, b.candidates)
+    ka = knn_descriptors(d1, d2, p1, p2, g, k=3, tol=tol)
+    kb = knn_descriptors(d1, d2, p1, p2, g.with_covariance(np.zeros((6, 6))), k=3, tol=tol)
+    assert np.array_equal(ka.indices, kb.indices) and np.array_equal(ka.column_best, kb.column_best)
+    ra = radius_descriptors(d1, d2, p1, p2, g, max_distance=200.0, tol=tol)
+    rb = radius_descriptors(d1, d2, p1, p2, g.with_covariance(np.zeros((6, 6))), max_distance=200.0, tol=tol)
+    assert np.array_equal(ra[0], rb[0])
+
+
+def test_covariance_band_recovers_matches_of_a_wrong_pose(forward):
+    pair, d1, d2, p1, p2 = forward
+    gt = pair.ground_truth(p1, p2)
+    g = pair.geometry
+    rng = np.random.default_rng(3)
+    axis = rng.normal(size=3)
+    off = TwoViewGeometry(g.K1, g.K2, _rot(np.deg2rad(0.5) * axis / np.linalg.norm(axis)) @ g.R, g.t,
+                          image_size1=g.image_size1, image_size2=g.image_size2)
+    plain = match_descriptors(d1, d2, p1, p2, off)[0]
+    banded = match_descriptors(d1, d2, p1, p2, off.with_covariance(pose_covariance(off, 0.5, 0.5)))[0]
+    assert gt.is_correct(banded).sum() > 1.3 * gt.is_correct(plain).sum()
+    assert gt.is_correct(banded).mean() > 0.9
+    # the same through SegmentMatcher, and filtering in the bands keeps what matching in them found
+    m = SegmentMatcher(off.with_covariance(pose_covariance(off, 0.5, 0.5)))
+    kp1 = [cv2.KeyPoint(float(x), float(y), 3) for x, y in p1]
+    kp2 = [cv2.KeyPoint(float(x), float(y), 3) for x, y in p2]
+    assert [(d.queryIdx, d.trainIdx) for d in m.match(d1, d2, kp1, kp2)] == [tuple(p) for p in banded.tolist()]
+    assert filter_pairs(banded, p1, p2, m.geometry).all()
+    assert not filter_pairs(banded, p1, p2, off).all()
+    labels, counts = m.explain(m.match(d1, d2, kp1, kp2), kp1, kp2)
+    assert counts["on_segment"] == len(banded)
