@@ -14,7 +14,10 @@ The package, in the direction the data flows:
 - :mod:`.scenes` and :mod:`.datasets`: synthetic and real test data;
 - :mod:`.colmap`: posed collections into a COLMAP database
   (``from episeg_cv import colmap``; needs pycolmap);
-- :mod:`.cli`: the ``episeg`` command.
+- :mod:`.cli`: the ``episeg`` command;
+- :func:`set_num_threads` / :func:`get_num_threads` (:mod:`.threads`): how many
+  threads the compiled kernels use, like ``cv2.setNumThreads``; every core by
+  default, and the same results for every count.
 """
 
 __version__ = "0.1.0"
@@ -28,6 +31,7 @@ from .io import Calibration, load_calibration, save_calibration  # noqa: E402
 from .matching import (AcceptRule, CandidateIndex, GuidedMatches, Neighbors, SearchConfig, explain_pairs,  # noqa: E402
                        filter_pairs, guided_matches, knn_descriptors, match_descriptors, radius_descriptors)
 from .opencv import SegmentMatcher, keypoints_to_array  # noqa: E402
+from .threads import get_num_threads, set_num_threads  # noqa: E402
 
 __all__ = [
     "TwoViewGeometry",
@@ -57,6 +61,8 @@ __all__ = [
     "draw_segment_figure",
     "draw_matches",
     "save_image",
+    "set_num_threads",
+    "get_num_threads",
     "scenes",
     "datasets",
     "__version__",

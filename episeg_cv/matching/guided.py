@@ -101,19 +101,24 @@ class _Scan:
     scores: np.ndarray
     counts: np.ndarray
     column_best: np.ndarray
+    column_scores: np.ndarray
+
+    @classmethod
+    def empty(cls, n1: int, n2: int, k: int) -> "_Scan":
+        """Accumulators for :meth:`CandidateIndex.scan`: nothing found yet."""
+        return cls(np.full((n1, k), -1, dtype=np.intp), np.full((n1, k), np.inf, dtype=np.float32),
+                   np.zeros(n1, dtype=np.intp), np.full(n2, -1, dtype=np.intp), np.full(n2, np.inf, dtype=np.float32))
+
+    def add(self, index: CandidateIndex, dist: Distances) -> "_Scan":
+        """Merge the candidates of ``index`` (its queries and keypoints are rows of ``dist``) into this scan."""
+        index.scan(dist.a, dist.b, dist.code, self.indices, self.scores, self.counts, self.column_scores,
+                   self.column_best)
+        return self
 
 
 def _scan(index: CandidateIndex, dist: Distances, k: int) -> _Scan:
     """The k nearest candidates of each query, the nearest query of each keypoint, and the counts."""
-    n1, n2 = len(index.points1), len(index.points2)
-    idx = np.full((n1, k), -1, dtype=np.intp)
-    sc = np.full((n1, k), np.inf, dtype=np.float32)
-    counts = np.zeros(n1, dtype=np.intp)
-    col_s = np.full(n2, np.inf, dtype=np.float32)
-    col_i = np.full(n2, -1, dtype=np.intp)
-    b_sorted = np.take(dist.b, index.t_sorted, axis=0)  # each slice's descriptors in contiguous memory
-    index.run(_kernels.knn_scan, dist.a, b_sorted, dist.code, idx, sc, counts, col_s, col_i)
-    return _Scan(idx, sc, counts, col_i)
+    return _Scan.empty(len(index.points1), len(index.points2), k).add(index, dist)
 
 
 def _guided_search(search: SearchConfig) -> SearchConfig:
@@ -140,7 +145,7 @@ def radius(inputs: MatchInputs, geometry: TwoViewGeometry, search: SearchConfig,
     """:func:`radius_descriptors` on checked inputs."""
     index = CandidateIndex.build(geometry, inputs.points1, inputs.points2, _guided_search(search))
     dist = inputs.distances
-    i, j = index.run(_kernels.candidate_pairs)
+    i, j = index.candidate_lists()
     # the scores rank, with float32 rounding: a slack keeps every pair near the boundary for the exact check
     limit = (max_distance**2 if dist.norm == "l2" else max_distance) * (1 + 1e-4) + 1e-6
     near = dist.paired(i, j) <= limit
