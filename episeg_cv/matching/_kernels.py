@@ -370,11 +370,15 @@ def nearest_excluding_parallel(A, B, qi, tj, exclude, norm, blocks):
 def gather_rows(src, rows, out):
     """``out[m] = src[rows[m]]`` (rows of any width)."""
     for m in range(rows.shape[0]):
-        out[m, :] = src[rows[m], :]
+        r = rows[m]
+        for c in range(src.shape[1]):
+            out[m, c] = src[r, c]
 
 
 @nb.njit(cache=True, nogil=True, parallel=True)
 def gather_rows_parallel(src, rows, out, blocks):
     """:func:`gather_rows` on threads."""
     for m in prange(rows.shape[0]):
-        out[m, :] = src[rows[m], :]
+        r = rows[m]
+        for c in range(src.shape[1]):
+            out[m, c] = src[r, c]
