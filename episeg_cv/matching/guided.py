@@ -31,7 +31,7 @@ from .config import AcceptRule, SearchConfig, resolve
 from .distances import Distances
 
 __all__ = ["MatchInputs", "Neighbors", "GuidedMatches", "knn_descriptors", "radius_descriptors", "guided_matches",
-           "match_descriptors", "knn", "radius", "nearest", "match"]
+           "match_descriptors", "knn", "radius", "nearest", "match", "check_index"]
 
 NAMES = ("descriptors1", "descriptors2", "points1", "points2")
 
@@ -127,10 +127,45 @@ def _guided_search(search: SearchConfig) -> SearchConfig:
     return search
 
 
+def _index(inputs: MatchInputs, geometry: TwoViewGeometry, search: SearchConfig, bucket_size: int = 64,
+           index: CandidateIndex | None = None) -> CandidateIndex:
+    """The caller's index (checked by :func:`check_index`), or a new one."""
+    if index is not None:
+        return index
+    return CandidateIndex.build(geometry, inputs.points1, inputs.points2, _guided_search(search), bucket_size)
+
+
+def check_index(index, inputs: MatchInputs, geometry: TwoViewGeometry, search: SearchConfig):
+    """``index`` itself when it was built for these points, geometry and search (or is None); else an error.
+
+    Reusing an index skips the segments and the index build, the part of a call that does not
+    depend on the descriptors (about a third of ``match`` at 10k keypoints): for example
+    ``knnMatch`` and ``match`` on the same pair. It is checked against the call's inputs, so that a
+    stale index cannot give wrong candidates.
+    """
+    if index is None:
+        return None
+    if not isinstance(index, CandidateIndex):
+        raise TypeError(f"index must be a CandidateIndex or None, got {type(index).__name__}")
+    g = index.geometry
+    same_geometry = g is geometry or (
+        g.image_size1 == geometry.image_size1 and g.image_size2 == geometry.image_size2
+        and all(np.array_equal(getattr(g, a), getattr(geometry, a)) for a in ("K1", "K2", "R", "t")))
+    if not same_geometry:
+        raise ValueError("index was built for another geometry")
+    if index.search != _guided_search(search):
+        raise ValueError(f"index was built for {index.search!r}, this call searches {search!r}")
+    for name, a, b in (("points1", index.points1, inputs.points1), ("points2", index.points2, inputs.points2)):
+        if a.shape != b.shape or not np.array_equal(a, b):
+            raise ValueError(f"index was built for other {name} (queries: image 1, train: image 2)")
+    return index
+
+
 # -- on checked inputs ---------------------------------------------------------------------------
-def knn(inputs: MatchInputs, geometry: TwoViewGeometry, search: SearchConfig, k: int) -> Neighbors:
-    """:func:`knn_descriptors` on checked inputs."""
-    index = CandidateIndex.build(geometry, inputs.points1, inputs.points2, _guided_search(search))
+def knn(inputs: MatchInputs, geometry: TwoViewGeometry, search: SearchConfig, k: int,
+        index: CandidateIndex | None = None) -> Neighbors:
+    """:func:`knn_descriptors` on checked inputs (``index``: a checked index to reuse, or None)."""
+    index = _index(inputs, geometry, search, index=index)
     if k > 2:  # no query has more neighbours than candidates: the (N1, k) arrays need no more columns
         k = max(1, min(k, int(index.candidate_counts().max(initial=0))))
     res = _scan(index, inputs.distances, k)
@@ -141,9 +176,9 @@ def knn(inputs: MatchInputs, geometry: TwoViewGeometry, search: SearchConfig, k:
 
 
 def radius(inputs: MatchInputs, geometry: TwoViewGeometry, search: SearchConfig,
-           max_distance: float) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`radius_descriptors` on checked inputs."""
-    index = CandidateIndex.build(geometry, inputs.points1, inputs.points2, _guided_search(search))
+           max_distance: float, index: CandidateIndex | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`radius_descriptors` on checked inputs (``index``: a checked index to reuse, or None)."""
+    index = _index(inputs, geometry, search, index=index)
     dist = inputs.distances
     i, j = index.candidate_lists()
     # the scores rank, with float32 rounding: a slack keeps every pair near the boundary for the exact check
@@ -169,7 +204,7 @@ def _keep(ratio_values, mutual_values, ratio, mutual):
 
 
 def nearest(inputs: MatchInputs, geometry: TwoViewGeometry, search: SearchConfig, rule: AcceptRule, rng=0,
-            bucket_size: int = 64, prefilter: bool = False):
+            bucket_size: int = 64, prefilter: bool = False, index: CandidateIndex | None = None):
     """Every query's nearest candidate with its ratio and mutual flag: ``(i, j, ratio, mutual, counts)``.
 
     With ``prefilter``, the padding references are scored only for the pairs that pass ``rule`` without
@@ -178,7 +213,7 @@ def nearest(inputs: MatchInputs, geometry: TwoViewGeometry, search: SearchConfig
     """
     dist = inputs.distances
     p1, p2 = inputs.points1, inputs.points2
-    index = CandidateIndex.build(geometry, p1, p2, _guided_search(search), bucket_size)
+    index = _index(inputs, geometry, search, bucket_size, index)
     res = _scan(index, dist, 2)
     i = np.flatnonzero(res.indices[:, 0] >= 0)
     j = res.indices[i, 0]
@@ -204,9 +239,9 @@ def nearest(inputs: MatchInputs, geometry: TwoViewGeometry, search: SearchConfig
 
 
 def match(inputs: MatchInputs, geometry: TwoViewGeometry, search: SearchConfig, rule: AcceptRule, rng=0,
-          bucket_size: int = 64) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`match_descriptors` on checked inputs."""
-    i, j, r, mu, _ = nearest(inputs, geometry, search, rule, rng, bucket_size, prefilter=True)
+          bucket_size: int = 64, index: CandidateIndex | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`match_descriptors` on checked inputs (``index``: a checked index to reuse, or None)."""
+    i, j, r, mu, _ = nearest(inputs, geometry, search, rule, rng, bucket_size, prefilter=True, index=index)
     keep = _keep(r, mu, rule.ratio, rule.mutual or rule.cross_check)
     i, j = i[keep], j[keep]
     return np.column_stack([i, j]).astype(np.intp), inputs.distances.exact(i, j)
@@ -214,7 +249,7 @@ def match(inputs: MatchInputs, geometry: TwoViewGeometry, search: SearchConfig, 
 
 # -- the doors ---------------------------------------------------------------------------------
 def knn_descriptors(descriptors1, descriptors2, points1, points2, geometry, *, k=2, norm="l2",
-                    search: SearchConfig | None = None, **options) -> Neighbors:
+                    search: SearchConfig | None = None, index: CandidateIndex | None = None, **options) -> Neighbors:
     """The ``k`` nearest candidates of each query on its segment (or line).
 
     Parameters
@@ -231,6 +266,12 @@ def knn_descriptors(descriptors1, descriptors2, points1, points2, geometry, *, k
     search : SearchConfig, optional
         The constraint (``"segment"`` or ``"line"``), ``tol`` (pixels) and
         ``depth_range``; its fields may also be given as keywords.
+    index : CandidateIndex, optional
+        An index already built for these points, this geometry and this
+        search (``CandidateIndex(geometry, points1, points2, search=search)``),
+        to reuse across calls on the same pair (``knn_descriptors`` then
+        ``match_descriptors``, ...): it skips the segments and the index
+        build. Checked against the call; ``ValueError`` if it does not fit.
 
     Returns
     -------
@@ -259,16 +300,20 @@ def knn_descriptors(descriptors1, descriptors2, points1, points2, geometry, *, k
     search, _ = resolve(search, None, options, takes_rule=False)
     inputs = MatchInputs.check(descriptors1, descriptors2, points1, points2, norm)
     k = as_positive_int(k, "k")
-    return knn(inputs, as_geometry(geometry), search, k)
+    geometry = as_geometry(geometry)
+    return knn(inputs, geometry, search, k, check_index(index, inputs, geometry, search))
 
 
 def radius_descriptors(descriptors1, descriptors2, points1, points2, geometry, *, max_distance, norm="l2",
-                       search: SearchConfig | None = None, **options) -> tuple[np.ndarray, np.ndarray]:
+                       search: SearchConfig | None = None, index: CandidateIndex | None = None,
+                       **options) -> tuple[np.ndarray, np.ndarray]:
     """All candidates within ``max_distance`` (descriptor units): ``(pairs (K, 2), distances (K,))``,
     sorted by query, then by distance. Other parameters as in :func:`knn_descriptors`."""
     search, _ = resolve(search, None, options, takes_rule=False)
     inputs = MatchInputs.check(descriptors1, descriptors2, points1, points2, norm)
-    return radius(inputs, as_geometry(geometry), search, as_nonnegative(max_distance, "maxDistance"))
+    geometry = as_geometry(geometry)
+    return radius(inputs, geometry, search, as_nonnegative(max_distance, "maxDistance"),
+                  check_index(index, inputs, geometry, search))
 
 
 @dataclass(frozen=True)
@@ -318,7 +363,7 @@ class GuidedMatches:
 
 def guided_matches(descriptors1, descriptors2, points1, points2, geometry, *, norm="l2",
                    search: SearchConfig | None = None, rule: AcceptRule | None = None, rng=0, bucket_size=64,
-                   **options) -> GuidedMatches:
+                   index: CandidateIndex | None = None, **options) -> GuidedMatches:
     """Nearest candidate of every query on its segment (or line), with its ratio and mutual flags.
 
     The thresholds of :func:`match_descriptors` are then a cheap filter
@@ -327,15 +372,16 @@ def guided_matches(descriptors1, descriptors2, points1, points2, geometry, *, no
     """
     search, rule = resolve(search, rule, options)
     inputs = MatchInputs.check(descriptors1, descriptors2, points1, points2, norm)
-    i, j, ratio, mutual, counts = nearest(inputs, as_geometry(geometry), search, rule, rng,
-                                          as_positive_int(bucket_size, "bucket_size"))
+    geometry = as_geometry(geometry)
+    i, j, ratio, mutual, counts = nearest(inputs, geometry, search, rule, rng, as_positive_int(bucket_size, "bucket_size"),
+                                          index=check_index(index, inputs, geometry, search))
     return GuidedMatches(np.column_stack([i, j]).astype(np.intp), inputs.distances.exact(i, j), ratio, mutual, counts,
                          rule)
 
 
 def match_descriptors(descriptors1, descriptors2, points1, points2, geometry, *, norm="l2",
                       search: SearchConfig | None = None, rule: AcceptRule | None = None, rng=0, bucket_size=64,
-                      **options) -> tuple[np.ndarray, np.ndarray]:
+                      index: CandidateIndex | None = None, **options) -> tuple[np.ndarray, np.ndarray]:
     """Match descriptors, comparing each query only with the keypoints on its epipolar segment.
 
     Parameters
@@ -349,6 +395,8 @@ def match_descriptors(descriptors1, descriptors2, points1, points2, geometry, *,
         Seed for the padding draw (fixed by default, so results repeat).
     bucket_size : int, optional
         Queries per pencil bucket of the candidate index (speed only; results do not change).
+    index : CandidateIndex, optional
+        An index to reuse, as in :func:`knn_descriptors` (then ``bucket_size`` is the index's).
     **options
         Fields of :class:`~episeg_cv.SearchConfig` or :class:`~episeg_cv.AcceptRule`
         (``tol=4``, ``ratio=0.8``, ...); they override ``search`` and ``rule``.
@@ -375,4 +423,6 @@ def match_descriptors(descriptors1, descriptors2, points1, points2, geometry, *,
     """
     search, rule = resolve(search, rule, options)
     inputs = MatchInputs.check(descriptors1, descriptors2, points1, points2, norm)
-    return match(inputs, as_geometry(geometry), search, rule, rng, as_positive_int(bucket_size, "bucket_size"))
+    geometry = as_geometry(geometry)
+    return match(inputs, geometry, search, rule, rng, as_positive_int(bucket_size, "bucket_size"),
+                 check_index(index, inputs, geometry, search))
