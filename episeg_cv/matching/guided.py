@@ -25,7 +25,6 @@ import numpy as np
 
 from .._validation import as_descriptor_pair, as_nonnegative, as_norm, as_points_of, as_positive_int
 from ..geometry import TwoViewGeometry, as_geometry
-from . import _kernels
 from .candidates import CandidateIndex
 from .config import AcceptRule, SearchConfig, resolve
 from .distances import Distances
