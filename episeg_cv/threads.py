@@ -21,6 +21,7 @@ changed).
 
 from __future__ import annotations
 
+import contextlib
 import operator
 import threading
 
@@ -37,6 +38,8 @@ MIN_PARALLEL_ITEMS = 2048
 BLOCKS_PER_THREAD = 8
 
 _requested: int | None = None
+_layer: str | None = None
+_launch_lock = threading.Lock()
 _blas = None
 _blas_lock = threading.Lock()
 
@@ -99,16 +102,32 @@ def use_parallel(items: int) -> bool:
 
 def call_parallel(kernel, *args):
     """``kernel(*args)`` with numba's thread count of the calling Python thread set to
-    :func:`get_num_threads` (and restored after)."""
+    :func:`get_num_threads` (and restored after).
+
+    Under numba's ``workqueue`` threading layer (used when neither TBB nor OpenMP is available),
+    two parallel launches at once from two Python threads abort the process; there the launches are
+    serialised by a lock. The ``omp`` and ``tbb`` layers take concurrent launches.
+    """
     n = get_num_threads()
     before = numba.get_num_threads()
-    if before == n:
-        return kernel(*args)
-    numba.set_num_threads(n)
-    try:
-        return kernel(*args)
-    finally:
-        numba.set_num_threads(before)
+    with (_launch_lock if _serialise_launches() else contextlib.nullcontext()):
+        if before == n:
+            return kernel(*args)
+        numba.set_num_threads(n)
+        try:
+            return kernel(*args)
+        finally:
+            numba.set_num_threads(before)
+
+
+def _serialise_launches() -> bool:
+    global _layer
+    if _layer is None:
+        try:
+            _layer = numba.threading_layer()
+        except ValueError:  # no parallel launch yet: the layer is not chosen
+            return True
+    return _layer == "workqueue"
 
 
 def blocks() -> int:

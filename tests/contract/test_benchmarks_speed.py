@@ -9,8 +9,11 @@ import json
 import sys
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
+
+import episeg_cv
 
 SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "speed.py"
 
@@ -32,12 +35,15 @@ def tiny_run(speed, tmp_path_factory):
     mp.setenv(peer.ENV, str(tmp_path_factory.mktemp("no_peer")))
     peer._module = None
     out = tmp_path_factory.mktemp("speed")
+    cv2_threads = cv2.getNumThreads()
     try:
         rc = speed.main(["--quick", "--sizes", "150,300", "--repeats", "1", "--image-size", "320x240",
                          "--threads", "1,2", "--out", str(out)])
     finally:
         mp.undo()
         peer._module, peer._why = saved
+        episeg_cv.set_num_threads(None)  # the run sets the thread counts of the process
+        cv2.setNumThreads(cv2_threads)
     return rc, out
 
 

@@ -125,6 +125,7 @@ def test_a_is_numpy_within_a_few_ulps():
 
 @pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2, reason="numba has a single thread here")
 def test_serial_and_parallel_give_the_same_bits(monkeypatch):
+    threads.set_num_threads(None)  # follow numba's setting, changed below
     before = numba.get_num_threads()
     try:
         for g, x1, dr, margin in scenes(10, seed=3):

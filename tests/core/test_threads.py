@@ -58,6 +58,7 @@ def problem(pose, norm, n1=2500, n2=2700, seed=0):
 def always_parallel(monkeypatch):
     """Parallel kernels even for small inputs; the thread count restored after."""
     monkeypatch.setattr(threads, "MIN_PARALLEL_ITEMS", 1)
+    threads.set_num_threads(None)  # (whatever an earlier test left)
     before = numba.get_num_threads()
     yield
     threads.set_num_threads(None)
