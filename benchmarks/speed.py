@@ -1,29 +1,35 @@
-"""Speed of guided matching against ``cv2.BFMatcher``, FLANN and plain epipolar-line filtering.
+"""Speed of guided matching against ``cv2.BFMatcher``, FLANN, plain epipolar-line filtering and a segment-tree peer.
 
 Usage::
 
-    python benchmarks/speed.py [--quick] [--repeats N] [--out DIR]
+    python benchmarks/speed.py [--quick] [--repeats N] [--threads 1,2] [--out DIR]
 
-On synthetic renders of the pose suite (``episeg_cv.scenes.make_pair``) at 1600 x 1200,
-real SIFT keypoints (the ``n`` strongest by response in each image, n = 2k, 5k, 10k, 20k)
-are matched by every method below, all on the same keypoints and descriptors. Each
-method is timed end to end (geometry, candidate gathering, distances, acceptance and the
-conversion to ``cv2.DMatch``), after a warm-up, as the median of ``--repeats`` runs; the
-methods are interleaved within each repeat so that they share the machine's load. Every
-time is reported as ``t_BF / t_method`` ("x faster than BFMatcher"), with
-``t_BF = cv2.BFMatcher(cv2.NORM_L2).knnMatch(k=2)`` measured in the same process and run.
-At n = 10k (the issue's target) there are at least 30 rounds, and the segment is compared
-with the line round by round: the median of the per-round ratios, with a paired bootstrap
-95 % interval.
+On synthetic renders of the pose suite (``episeg_cv.scenes.make_pair``) at 1600 x 1200, real SIFT
+keypoints (the ``n`` strongest by response in each image, n = 2k, 5k, 10k, 20k) are matched by every
+method below, all on the same keypoints and descriptors. Each method is timed end to end (geometry,
+candidate gathering, distances, acceptance and the conversion to ``cv2.DMatch``), after a warm-up, as the
+median of ``--repeats`` rounds; within each round every method runs once at every thread count
+(``cv2.setNumThreads(n)`` and ``episeg_cv.set_num_threads(n)`` together), so that methods and thread
+counts share the machine's load. Every time is reported as ``t_BF / t_method`` ("x faster than
+BFMatcher"), with ``t_BF = cv2.BFMatcher(cv2.NORM_L2).knnMatch(k=2)`` at the same thread count. At
+n = 10k there are at least 30 rounds, and ratios of two methods (line / segment, 1 / 2 threads) are
+medians of per-round ratios with a paired bootstrap 95 % interval.
 
-After the SIFT tables, the first pose is also matched with ORB (binary descriptors,
-``NORM_HAMMING``) at the largest size up to 10k, and ``filter`` is timed on 100k matches.
+Then, on the first pose:
 
-``--quick`` runs one pose and n = 2k, 5k only.
+- the time of each stage of ``match`` at 10k (checks, segments, index, scan, acceptance, DMatch),
+  against the arithmetic floor, at every thread count, and Amdahl's law for 16 cores (``_stages.py``);
+- a race against the segment-tree matcher of "Pixel-Accurate Epipolar Guided Matching" (3DV 2026) at 5k,
+  10k, 20k, 50k (a 2400 x 1800 render where 1600 x 1200 has too few keypoints): same keypoints, descriptors,
+  pose, tol and threads; time, candidates per query and correct matches (``_peer.py``). The peer is
+  imported from ``EPISEG_PEER_PATH``; where it is not available the benchmark says why, prints how to
+  build it, and runs the rest;
+- ORB (binary descriptors, ``NORM_HAMMING``) and ``filter`` on 100k matches.
 
-Writes ``speed.md`` (tables and the issue's target, evaluated from the numbers) and
-``speed.json`` (every raw timing and the machine metadata) into ``--out``
-(default ``benchmarks/results``). Uses only the public API of episeg_cv.
+``--quick`` runs one pose, n = 2k and 5k, the stage profile at 5k and the race at 2k and 5k.
+
+Writes ``speed.md`` (tables and the issue's goals, evaluated from the numbers) and ``speed.json`` (every raw
+timing and the machine metadata) into ``--out`` (default ``benchmarks/results``).
 """
 
 from __future__ import annotations
@@ -43,56 +49,18 @@ import numpy as np
 from threadpoolctl import threadpool_info
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _peer  # noqa: E402
+import _stages  # noqa: E402
 from _common import machine_metadata, package_dirty  # noqa: E402
+from _speed_common import (BOOTSTRAP, FILTER_MATCHES, FLANN_INDEX, FLANN_SEARCH, GOAL_FLOOR,  # noqa: E402
+                           GOAL_SCALING, GOAL_VS_LINE, GOAL_X, IMAGE_SIZE, METHODS, POSES, QUICK_POSES, QUICK_SIZES,
+                           RACE_IMAGE_SIZE, RACE_SIZES, RATIO, REPEATS, RESULTS, SCRIPT, SIZES, TARGET_N,
+                           TARGET_REPEATS, TOL)
+from _speed_report import write_markdown  # noqa: E402
+from _stages import set_threads  # noqa: E402
 
-from episeg_cv import CandidateIndex, SegmentMatcher, filter_pairs, match_descriptors  # noqa: E402
-from episeg_cv import scenes  # noqa: E402
-from episeg_cv import AcceptRule  # noqa: E402
-
-DEFAULT_RATIO, DEFAULT_PAD = AcceptRule().ratio, AcceptRule().pad  # the library's defaults
-
-RESULTS = Path(__file__).resolve().parent / "results"
-SCRIPT = "benchmarks/speed.py"
-IMAGE_SIZE = (1600, 1200)  # 1280 x 960 gives fewer than 20k SIFT keypoints on some poses
-SIZES = (2000, 5000, 10000, 20000)
-QUICK_SIZES = (2000, 5000)
-POSES = ("forward", "lateral")
-QUICK_POSES = ("forward",)
-REPEATS = 5
-RATIO = 0.8  # Lowe's ratio for the cv2 pipelines
-TOL = 2.0  # SegmentMatcher's default pixel tolerance
-FLANN_INDEX = {"algorithm": 1, "trees": 4}  # FLANN_INDEX_KDTREE
-FLANN_SEARCH = {"checks": 64}
-FILTER_MATCHES = 100_000
-TARGET_N = 10000
-#: Repeats at TARGET_N (at least), for the bootstrap interval of the line / segment ratio. With 15
-#: rounds the interval was about +-0.05-0.1 wide, too wide to resolve the lateral pose's ~1.1.
-TARGET_REPEATS = 30
-#: Bootstrap resamples for that interval.
-BOOTSTRAP = 2000
-TARGET_X = 20.0
-
-#: key -> (label in the tables, short description)
-METHODS = {
-    "bf_knn": ("BFMatcher knnMatch(k=2) (reference)", "`cv2.BFMatcher(cv2.NORM_L2).knnMatch(d1, d2, k=2)`"),
-    "bf_ratio_line": ("BFMatcher knnMatch + ratio + line filter",
-                      f"the same, then Lowe's ratio {RATIO}, then "
-                      "`SegmentMatcher(geometry, constraint=\"line\").filter(good, kp1, kp2)`"),
-    "flann_ratio": ("FLANN knnMatch(k=2) + ratio",
-                    f"`cv2.FlannBasedMatcher` (KD-tree, {FLANN_INDEX['trees']} trees, {FLANN_SEARCH['checks']} "
-                    f"checks; the index is built in each call) `knnMatch(k=2)`, then ratio {RATIO}: the fast peer"),
-    "segment_match": ("SegmentMatcher segment: match", "`SegmentMatcher(geometry, cv2.NORM_L2, "
-                      "constraint=\"segment\").match(d1, d2, kp1, kp2)` "
-                      f"(the default rule: mutual + ratio {DEFAULT_RATIO}, pad {DEFAULT_PAD})"),
-    "segment_knn": ("SegmentMatcher segment: knnMatch(k=2)", "`SegmentMatcher(..., constraint=\"segment\")"
-                    ".knnMatch(d1, d2, kp1, kp2, k=2)` (raw neighbours, like BFMatcher's)"),
-    "line_match": ("SegmentMatcher line: match", "the same with `constraint=\"line\"`"),
-    "line_knn": ("SegmentMatcher line: knnMatch(k=2)", "the same with `constraint=\"line\"`"),
-    "segment_arrays": ("match_descriptors segment (arrays)", "`match_descriptors(d1, d2, p1, p2, geometry, "
-                       "constraint=\"segment\")` on arrays, no cv2 objects"),
-    "line_arrays": ("match_descriptors line (arrays)", "the same with `constraint=\"line\"`"),
-}
-
+from episeg_cv import CandidateIndex, SegmentMatcher, filter_pairs, ground_truth_matches  # noqa: E402
+from episeg_cv import knn_descriptors, match_descriptors, scenes  # noqa: E402
 
 def progress(msg: str) -> None:
     print(f"[speed {time.strftime('%H:%M:%S')}] {msg}", file=sys.stderr, flush=True)
@@ -152,16 +120,27 @@ def _output_size(result) -> int:
     return int(sum(len(r) if isinstance(r, (list, tuple)) else 1 for r in result))
 
 
-def time_interleaved(methods: dict, repeats: int) -> tuple[dict, dict]:
-    """One warm-up call of each method, then ``repeats`` rounds, each timing every method once."""
-    outputs = {name: _output_size(f()) for name, f in methods.items()}  # warm-up
-    times = {name: [] for name in methods}
+def time_interleaved(methods: dict, repeats: int, thread_counts=(None,)) -> tuple[dict, dict]:
+    """One warm-up call of each method at each thread count, then ``repeats`` rounds, each timing every method
+    once at every thread count (so that the counts share the machine's load, round by round).
+
+    Returns ``(times, outputs)``: ``times[n][name]`` seconds per round at ``n`` threads (``None``: as set).
+    """
+    outputs = {}
+    for n in thread_counts:
+        if n is not None:
+            set_threads(n)
+        outputs.update({name: _output_size(f()) for name, f in methods.items()})
+    times = {n: {name: [] for name in methods} for n in thread_counts}
     for _ in range(repeats):
-        for name, f in methods.items():
-            gc.collect()
-            t0 = time.perf_counter()
-            f()
-            times[name].append(time.perf_counter() - t0)
+        for n in thread_counts:
+            if n is not None:
+                set_threads(n)
+            for name, f in methods.items():
+                gc.collect()
+                t0 = time.perf_counter()
+                f()
+                times[n][name].append(time.perf_counter() - t0)
     return times, outputs
 
 
@@ -202,7 +181,11 @@ def setup(name: str, image_size):
     return pair, kp1_all, des1_all, kp2_all, des2_all
 
 
-def run_pose(name: str, sizes, repeats: int, image_size) -> dict:
+def _medians(times: dict) -> dict:
+    return {k: float(np.median(v)) for k, v in times.items()}
+
+
+def run_pose(name: str, sizes, repeats: int, image_size, thread_counts) -> dict:
     pair, kp1_all, des1_all, kp2_all, des2_all = setup(name, image_size)
     geometry = pair.geometry
     e = geometry.epipole_homogeneous
@@ -221,22 +204,125 @@ def run_pose(name: str, sizes, repeats: int, image_size) -> dict:
                  if len(p1) and len(p2) else 0.0 for c in ("segment", "line")}
         methods = make_methods(geometry, kp1, kp2, d1, d2, p1, p2)
         t0 = time.perf_counter()
-        times, outputs = time_interleaved(methods, max(repeats, TARGET_REPEATS) if n == TARGET_N else repeats)
-        med = {k: float(np.median(v)) for k, v in times.items()}
-        ratio = {k: med["bf_knn"] / v for k, v in med.items()}
-        out["sizes"][str(n)] = {
-            "n_requested": n, "n1": len(kp1), "n2": len(kp2),
-            "candidates_per_query": {**cands, "none": float(len(kp2))},
-            "times_s": times, "median_s": med, "x_faster_than_bf": ratio, "output_size": outputs,
-        }
-        progress(f"{name} n={n}: {time.perf_counter() - t0:.1f} s; BF {1e3 * med['bf_knn']:.0f} ms; "
-                 f"segment match {ratio['segment_match']:.1f}x, knn {ratio['segment_knn']:.1f}x; "
-                 f"line match {ratio['line_match']:.1f}x, knn {ratio['line_knn']:.1f}x; "
-                 f"FLANN {ratio['flann_ratio']:.1f}x; candidates/query segment {cands['segment']:.1f}, "
+        times, outputs = time_interleaved(methods, max(repeats, TARGET_REPEATS) if n == TARGET_N else repeats,
+                                          thread_counts)
+        by = {}
+        for nt in thread_counts:
+            med = _medians(times[nt])
+            by[str(nt)] = {"times_s": times[nt], "median_s": med,
+                           "x_faster_than_bf": {k: med["bf_knn"] / v for k, v in med.items()}}
+        out["sizes"][str(n)] = {"n_requested": n, "n1": len(kp1), "n2": len(kp2),
+                                "candidates_per_query": {**cands, "none": float(len(kp2))},
+                                "threads": by, "output_size": outputs}
+        top = by[str(thread_counts[-1])]
+        progress(f"{name} n={n}: {time.perf_counter() - t0:.1f} s; at {thread_counts[-1]} threads BF "
+                 f"{1e3 * top['median_s']['bf_knn']:.0f} ms; segment match {top['x_faster_than_bf']['segment_match']:.1f}x, "
+                 f"knn {top['x_faster_than_bf']['segment_knn']:.1f}x; line match "
+                 f"{top['x_faster_than_bf']['line_match']:.1f}x; candidates/query segment {cands['segment']:.1f}, "
                  f"line {cands['line']:.1f}")
     ns = [0.5 * (s["n1"] + s["n2"]) for s in out["sizes"].values()]
-    out["exponent"] = {k: exponent(ns, [s["median_s"][k] for s in out["sizes"].values()]) for k in METHODS}
+    top = str(thread_counts[-1])
+    out["exponent"] = {k: exponent(ns, [s["threads"][top]["median_s"][k] for s in out["sizes"].values()]) for k in METHODS}
     return out
+
+
+def run_stages(pose: str, n: int, repeats: int, image_size, thread_counts) -> dict:
+    """The stage profile of ``match`` at ``n`` (segment and line), the floor and the Amdahl estimate."""
+    pair, kp1_all, des1_all, kp2_all, des2_all = setup(pose, image_size)
+    kp1, d1, p1 = strongest(kp1_all, des1_all, n)
+    kp2, d2, p2 = strongest(kp2_all, des2_all, n)
+    out = {"pose": pose, "n1": len(p1), "n2": len(p2), "constraints": {}}
+    for c in ("segment", "line"):
+        t0 = time.perf_counter()
+        r = _stages.profile(pair.geometry, kp1, kp2, d1, d2, p1, p2, c, TOL, thread_counts, repeats)
+        out["constraints"][c] = r
+        one = r["by_threads"][str(thread_counts[0])]
+        progress(f"stages {pose} n={n} {c}: core {1e3 * one['core_cpu_s']:.1f} ms CPU at {thread_counts[0]} thread(s), "
+                 f"floor {1e3 * r['floor']['time_s']:.2f} ms ({r['floor']['rate_mac_per_s'] / 1e9:.1f} G MAC/s); "
+                 f"{time.perf_counter() - t0:.0f} s")
+    return out
+
+
+def _race_data(pose: str, n: int, image_size):
+    """Keypoints for the race: the run's render, or the larger one where it has fewer than n keypoints."""
+    data = setup(pose, image_size)
+    if min(len(data[1]), len(data[3])) < n and tuple(image_size) == IMAGE_SIZE:
+        data = setup(pose, RACE_IMAGE_SIZE)
+    return data
+
+
+def run_race(pose: str, sizes, repeats: int, image_size, thread_counts) -> dict:
+    """Ours (knn_descriptors k=2 + ratio) against the peer (tree / hash candidates + the same nearest-two and ratio)."""
+    module = _peer.load()
+    out = {"pose": pose, "available": module is not None, "why_unavailable": _peer.why_unavailable(),
+           "ratio": RATIO, "tol": TOL, "sizes": {}}
+    if module is None:
+        progress(f"race: the segment-tree peer is not available ({out['why_unavailable']}); racing ours alone.\n"
+                 + _peer.RECIPE)
+    for n in sizes:
+        pair, kp1_all, des1_all, kp2_all, des2_all = _race_data(pose, n, image_size)
+        _, d1, p1 = strongest(kp1_all, des1_all, n)
+        _, d2, p2 = strongest(kp2_all, des2_all, n)
+        g = pair.geometry
+        F = g.fundamental_matrix
+        gt = ground_truth_matches(p1, p2, pair.depth1, pair.depth2, pair.geometry_true)
+        stats = {}
+
+        def ours(c):
+            def f():
+                nb = knn_descriptors(d1, d2, p1, p2, g, k=2, tol=TOL, constraint=c)
+                return _peer.ratio_test(nb.indices, nb.distances * nb.distances, RATIO)  # the same rule as the peer's
+            return f
+
+        def theirs(method):
+            def f():
+                st = {}
+                res = _peer.match(d1, d2, p1, p2, F, TOL, RATIO, method, parallel=_peer_threads[0] > 1, timings=st)
+                stats.setdefault(method, []).append(st)
+                return res
+            return f
+
+        methods = {"ours segment": ours("segment"), "ours line": ours("line")}
+        if module is not None:
+            methods.update({"peer tree": theirs("tree"), "peer hash": theirs("hash")})
+        cand = {"ours segment": float(CandidateIndex(g, p1, p2, tol=TOL).candidate_counts().mean()),
+                "ours line": float(CandidateIndex(g, p1, p2, tol=TOL, constraint="line").candidate_counts().mean())}
+        by = {}
+        for nt in thread_counts:  # thread counts in turn: the peer's OpenMP limit is a context
+            _peer_threads[0] = nt
+            stats.clear()
+            set_threads(nt)
+            with _peer.openmp_limit(nt):
+                results = {k: f() for k, f in methods.items()}  # warm-up
+                stats.clear()
+                times, cpu = {k: [] for k in methods}, {k: [] for k in methods}
+                for _ in range(repeats):
+                    for k, f in methods.items():
+                        gc.collect()
+                        t0, c0 = time.perf_counter(), time.thread_time()
+                        f()
+                        times[k].append(time.perf_counter() - t0)
+                        cpu[k].append(time.thread_time() - c0)
+            row = {}
+            for k in methods:
+                pairs = results[k][0]
+                row[k] = {"median_s": float(np.median(times[k])), "median_cpu_s": float(np.median(cpu[k])),
+                          "times_s": times[k], "matches": int(len(pairs)),
+                          "correct": int(gt.is_correct(pairs).sum()) if len(pairs) else 0}
+            for method, st in stats.items():
+                cand[f"peer {method}"] = st[0]["candidates"] / max(len(p1), 1)
+                row[f"peer {method}"]["stages_s"] = {x: float(np.median([s[x] for s in st]))
+                                                     for x in ("peer", "peer_cpp", "csr", "knn", "ratio")}
+            by[str(nt)] = row
+        out["sizes"][str(n)] = {"n1": len(p1), "n2": len(p2), "image_size": list(pair.geometry.image_size1),
+                                "candidates_per_query": cand, "threads": by}
+        top = by[str(thread_counts[-1])]
+        progress(f"race {pose} n={n}: " + ", ".join(f"{k} {1e3 * v['median_s']:.1f} ms ({v['correct']} correct)"
+                                                     for k, v in top.items()))
+    return out
+
+
+_peer_threads = [1]
 
 
 def run_filter(repeats: int, image_size, pose: str, n: int = TARGET_N, n_matches: int = FILTER_MATCHES) -> dict:
@@ -254,6 +340,7 @@ def run_filter(repeats: int, image_size, pose: str, n: int = TARGET_N, n_matches
         methods[f"SegmentMatcher.filter {c}"] = (lambda m=m: m.filter(dmatches, kp1, kp2))
         methods[f"filter_pairs {c}"] = (lambda c=c: filter_pairs(pairs, p1, p2, g, tol=TOL, constraint=c))
     times, _ = time_interleaved(methods, repeats)
+    times = times[None]
     kept = {c: int(filter_pairs(pairs, p1, p2, g, tol=TOL, constraint=c).sum()) for c in ("segment", "line")}
     med = {k: float(np.median(v)) for k, v in times.items()}
     progress("filter on {} matches: ".format(n_matches) + ", ".join(f"{k} {1e3 * v:.1f} ms" for k, v in med.items()))
@@ -273,6 +360,7 @@ def run_binary(repeats: int, image_size, pose: str, n: int = TARGET_N) -> dict:
         methods[f"SegmentMatcher {c}: match"] = lambda m=m: m.match(d1, d2, kp1, kp2)
         methods[f"SegmentMatcher {c}: knnMatch(k=2)"] = lambda m=m: m.knnMatch(d1, d2, kp1, kp2, k=2)
     times, outputs = time_interleaved(methods, max(repeats, TARGET_REPEATS) if n == TARGET_N else repeats)
+    times = times[None]
     med = {k: float(np.median(v)) for k, v in times.items()}
     bf_t = med["BFMatcher knnMatch(k=2) (reference)"]
     line_vs_segment = {what: ratio_interval(times[f"SegmentMatcher line: {what}"], times[f"SegmentMatcher segment: {what}"])
@@ -283,189 +371,98 @@ def run_binary(repeats: int, image_size, pose: str, n: int = TARGET_N) -> dict:
             "line_vs_segment": line_vs_segment}
 
 
-def targets(poses: dict) -> dict:
-    """The issue's target at n = 10k, evaluated from the medians of each pose."""
+# ---------------------------------------------------------------------------------
+# the goals
+# ---------------------------------------------------------------------------------
+def pose_goals(poses: dict) -> dict:
+    """Per pose, at n = TARGET_N: x faster than BFMatcher and line / segment at each thread count, and the
+    scaling from 1 to 2 threads (medians of per-round ratios with paired bootstrap intervals). None without
+    that size."""
     out = {}
     for name, r in poses.items():
         s = r["sizes"].get(str(TARGET_N))
         if s is None:
             out[name] = None
             continue
-        x, times = s["x_faster_than_bf"], s["times_s"]
-        checks = {
-            "segment_match_x": x["segment_match"], "segment_knn_x": x["segment_knn"],
-            "rounds": len(times["segment_match"]),
-            # per round, the line's time over the segment's, with a 95 % paired bootstrap interval
-            "segment_match_vs_line": ratio_interval(times["line_match"], times["segment_match"]),
-            "segment_knn_vs_line": ratio_interval(times["line_knn"], times["segment_knn"]),
-        }
-        checks["met_20x"] = bool(x["segment_match"] >= TARGET_X and x["segment_knn"] >= TARGET_X)
-        # faster than the line: the whole interval above 1, for match and for knnMatch
-        checks["met_faster_than_line"] = bool(checks["segment_match_vs_line"][1] > 1
-                                              and checks["segment_knn_vs_line"][1] > 1)
-        checks["met"] = checks["met_20x"] and checks["met_faster_than_line"]
-        out[name] = checks
+        g = {"by_threads": {}, "scaling": None}
+        for nt, t in s["threads"].items():
+            x, times = t["x_faster_than_bf"], t["times_s"]
+            row = {"segment_match_x": x["segment_match"], "segment_knn_x": x["segment_knn"],
+                   "rounds": len(times["segment_match"]),
+                   "segment_match_vs_line": ratio_interval(times["line_match"], times["segment_match"]),
+                   "segment_knn_vs_line": ratio_interval(times["line_knn"], times["segment_knn"])}
+            row["met_x"] = bool(x["segment_match"] >= GOAL_X and x["segment_knn"] >= GOAL_X)
+            row["met_vs_line"] = bool(row["segment_match_vs_line"][0] >= GOAL_VS_LINE
+                                      and row["segment_knn_vs_line"][0] >= GOAL_VS_LINE)
+            g["by_threads"][nt] = row
+        if "1" in s["threads"] and "2" in s["threads"]:
+            one, two = s["threads"]["1"]["times_s"], s["threads"]["2"]["times_s"]
+            sc = {k: ratio_interval(one[k], two[k]) for k in METHODS}
+            g["scaling"] = {"per_method": sc,
+                            "met": bool(sc["segment_match"][0] >= GOAL_SCALING and sc["segment_knn"][0] >= GOAL_SCALING)}
+        out[name] = g
+    return out
+
+
+def floor_goal(stages: dict | None) -> dict | None:
+    """Core work of match (everything but the cv2 objects) over the floor, at one thread (CPU-time medians)."""
+    if not stages:
+        return None
+    out = {"n": stages["n1"]}
+    for c, r in stages["constraints"].items():
+        one = r["by_threads"].get("1")
+        if one is None:
+            return None
+        x = one["core_cpu_s"] / r["floor"]["time_s"]
+        out[c] = {"core_s": one["core_cpu_s"], "floor_s": r["floor"]["time_s"], "x": x, "met": bool(x <= GOAL_FLOOR)}
+    out["met"] = all(v["met"] for k, v in out.items() if isinstance(v, dict))
+    return out
+
+
+def race_goal(race: dict | None) -> dict | None:
+    """Per size, thread count and peer method: is ours faster, with at least as many correct matches?"""
+    if not race or not race["available"]:
+        return None
+    out = {"by_size": {}}
+    for n, s in race["sizes"].items():
+        for nt, row in s["threads"].items():
+            for m in ("peer tree", "peer hash"):
+                if m not in row:
+                    continue
+                p = row[m]
+                cmp = {}
+                for ours in ("ours segment", "ours line"):
+                    o = row[ours]
+                    cmp[ours] = {"x_faster": p["median_s"] / o["median_s"], "correct_diff": o["correct"] - p["correct"],
+                                 "met": bool(o["median_s"] < p["median_s"] and o["correct"] >= p["correct"])}
+                cmp["met"] = cmp["ours segment"]["met"] or cmp["ours line"]["met"]
+                out["by_size"].setdefault(n, {}).setdefault(nt, {})[m] = cmp
+    out["met"] = all(c["met"] for by_nt in out["by_size"].values() for by_m in by_nt.values() for c in by_m.values())
+    return out
+
+
+def amdahl_methods(poses: dict, n: int) -> dict:
+    """Per pose and method, at size ``n``: Amdahl's parallel fraction from the 1- and 2-thread medians, and the
+    time and x-faster-than-BFMatcher extrapolated to 16 cores."""
+    out = {}
+    for name, r in poses.items():
+        s = r["sizes"].get(str(n))
+        if s is None or "1" not in s["threads"] or "2" not in s["threads"]:
+            continue
+        one, two = s["threads"]["1"]["median_s"], s["threads"]["2"]["median_s"]
+        rows = {}
+        for k in METHODS:
+            p = _stages.parallel_fraction(one[k], two[k])
+            rows[k] = {"p": p, "t1_s": one[k], "t2_s": two[k], "t16_s": _stages.on_cores(one[k], p)}
+        for k in METHODS:
+            rows[k]["x_faster_than_bf_16"] = rows["bf_knn"]["t16_s"] / rows[k]["t16_s"]
+        out[name] = rows
     return out
 
 
 # ---------------------------------------------------------------------------------
 # output
 # ---------------------------------------------------------------------------------
-def _k(n: int) -> str:
-    return f"{n // 1000}k" if n % 1000 == 0 and n >= 1000 else str(n)
-
-
-def _fmt_x(v: float) -> str:
-    return f"{v:.0f}" if v >= 100 else f"{v:.1f}" if v >= 1 else f"{v:.2f}"
-
-
-def _fmt_ms(v: float) -> str:
-    ms = 1e3 * v
-    return f"{ms:.0f}" if ms >= 100 else f"{ms:.1f}" if ms >= 1 else f"{ms:.2f}"
-
-
-def _fmt_ci(v) -> str:
-    return f"{v[0]:.2f} [{v[1]:.2f}, {v[2]:.2f}]"
-
-
-def _yes(b) -> str:
-    return "**yes**" if b else "**no**"
-
-
-def _dirty_note(meta) -> str:
-    return ", with uncommitted changes in episeg_cv/" if meta.get("episeg_cv_uncommitted_changes") else ""
-
-
-def write_markdown(path: Path, res: dict) -> None:
-    meta, cfg = res["machine"], res["config"]
-    L = ["# Speed: guided matching against cv2.BFMatcher\n"]
-    L.append(f"Made by `{res['command']}` on {meta['date']} ({meta['cpu']}, {meta['cpu_count']} cores, "
-             f"python {meta['python']}, numpy {meta['numpy']}, cv2 {meta['cv2']}, episeg_cv {meta['episeg_cv']}, "
-             f"git HEAD {meta['git_commit']} at the start{_dirty_note(meta)}). Load average (1 min) "
-             f"{res['load_average'][0]:.2f} at the start, {res['load_average'][1]:.2f} at the end. Raw timings and machine metadata in "
-             "`speed.json`.\n")
-    L.append("**Absolute times on a shared 2-core machine are unstable; the claim is the ratios**, each method's "
-             "time against `cv2.BFMatcher.knnMatch(k=2)` measured in the same process and run, with the methods "
-             "interleaved in every repeat so that they share whatever load the machine has.\n")
-
-    L.append(f"## The issue's target (n = {_k(TARGET_N)} keypoints per image)\n")
-    L.append(f"Issue 3: at {_k(TARGET_N)} keypoints per image, `match` and `knnMatch(k=2)` with "
-             f"`constraint=\"segment\"` must be at least {TARGET_X:.0f}x faster than `cv2.BFMatcher.knnMatch(k=2)`, "
-             "and faster than the same matcher with `constraint=\"line\"`. The x-faster figures are from the medians "
-             "below. The line / segment figures are the median over the interleaved rounds of the line's time over "
-             "the segment's in the same round, with a 95 % paired bootstrap interval in brackets; the segment counts "
-             "as faster only when the whole interval is above 1.\n")
-    tg = res["targets"]
-    if all(v is None for v in tg.values()):
-        L.append(f"Not evaluated: this run has no n = {_k(TARGET_N)} (run without `--quick`).\n")
-    else:
-        L.append(f"| pose | segment match, x faster than BF | segment knnMatch, x faster than BF | >= {TARGET_X:.0f}x "
-                 "| line / segment time, match | line / segment time, knnMatch | faster than line | target met |")
-        L.append("|---|---|---|---|---|---|---|---|")
-        for pose, t in tg.items():
-            if t is None:
-                L.append(f"| {pose} | n/a | n/a | n/a | n/a | n/a | n/a | n/a |")
-                continue
-            L.append(f"| {pose} | {_fmt_x(t['segment_match_x'])} | {_fmt_x(t['segment_knn_x'])} | "
-                     f"{_yes(t['met_20x'])} | {_fmt_ci(t['segment_match_vs_line'])} | {_fmt_ci(t['segment_knn_vs_line'])} | "
-                     f"{_yes(t['met_faster_than_line'])} | {_yes(t['met'])} |")
-        done = [t for t in tg.values() if t is not None]
-        L.append("")
-        L.append(f"Overall: the target is **{'met' if all(t['met'] for t in done) else 'not met'}** "
-                 f"on {'every pose' if all(t['met'] for t in done) else 'at least one pose'} of this run. "
-                 "(A line / segment ratio above 1 means the segment is faster.)\n")
-
-    L.append("## Setup\n")
-    L.append(f"- Scenes: `episeg_cv.scenes.make_pair(pose, image_size={tuple(cfg['image_size'])})`, the room "
-             "scenes of the pose suite rendered with texture; the matcher gets `pair.geometry`.")
-    L.append("- Keypoints: `cv2.SIFT_create(nfeatures=0, contrastThreshold=0.0)` run once per image; for each n "
-             "the n strongest by `response` are kept in each image (real keypoint density, not random points). "
-             "Keypoints go to `SegmentMatcher` as lists of `cv2.KeyPoint` (the drop-in usage) and to "
-             "`match_descriptors` as `(n, 2)` arrays. Rendering, detection and the lists are outside the timed part.")
-    L.append(f"- Timing: each method end to end, one warm-up call, then {cfg['repeats']} repeats with the methods "
-             f"interleaved ({TARGET_REPEATS} at n = {_k(TARGET_N)}); the tables give the median. The exponent is the least-squares slope of log(median time) "
-             "against log(n) over the sizes.")
-    L.append(f"- Threads as a user gets them: cv2 {res['threads']['cv2']} threads (BFMatcher and FLANN use them), "
-             f"BLAS {res['threads']['blas']}. The matcher's candidate scan is single-threaded compiled code (numba); "
-             "BLAS serves only its padding references. So BFMatcher and FLANN may use every core while the "
-             "matcher mostly uses one: on a loaded machine "
-             "the multi-threaded methods lose more, which raises the ratios; compare runs at a low load average.")
-    L.append(f"- Candidates per query: `CandidateIndex(geometry, p1, p2, tol={TOL:g}, constraint=...)"
-             ".candidate_counts().mean()`; BFMatcher compares each query with all n keypoints of image 2.")
-    L.append("- Methods:")
-    for k, (label, desc) in METHODS.items():
-        L.append(f"  - **{label}**: {desc}.")
-    L.append("")
-
-    for pose, r in res["poses"].items():
-        sizes = list(r["sizes"].values())
-        cols = [_k(s["n_requested"]) for s in sizes]
-        L.append(f"## Pose `{pose}`: {r['description']}\n")
-        L.append(f"SIFT keypoints detected: {r['keypoints_detected'][0]} in image 1, {r['keypoints_detected'][1]} in "
-                 "image 2. Keypoints used per size (image 1 / image 2): "
-                 + ", ".join(f"{_k(s['n_requested'])}: {s['n1']} / {s['n2']}" for s in sizes) + ".\n")
-        L.append("### x faster than `cv2.BFMatcher.knnMatch(k=2)` (t_BF / t_method; higher is faster)\n")
-        L.append("| method | " + " | ".join(f"n = {c}" for c in cols) + " | exponent |")
-        L.append("|---|" + "---|" * len(cols) + "---|")
-        for k, (label, _) in METHODS.items():
-            ex = r["exponent"][k]
-            cells = [("1 (" + _fmt_ms(s["median_s"][k]) + " ms)") if k == "bf_knn" else _fmt_x(s["x_faster_than_bf"][k])
-                     for s in sizes]
-            L.append(f"| {label} | " + " | ".join(cells) + f" | {'n/a' if ex is None else f'{ex:.2f}'} |")
-        L.append("")
-        L.append("### Candidates per query\n")
-        L.append("| constraint | " + " | ".join(f"n = {c}" for c in cols) + " |")
-        L.append("|---|" + "---|" * len(cols))
-        for c in ("segment", "line"):
-            L.append(f"| {c} | " + " | ".join(f"{s['candidates_per_query'][c]:.1f} "
-                                               f"({100 * s['candidates_per_query'][c] / max(s['n2'], 1):.2f} %)"
-                                               for s in sizes) + " |")
-        L.append("| none (BFMatcher) | " + " | ".join(f"{s['n2']}" for s in sizes) + " |")
-        L.append("")
-        slower = [f"{_k(s['n_requested'])} ({what})" for s in sizes for what, a, b in
-                  (("match", "segment_match", "line_match"), ("knnMatch", "segment_knn", "line_knn"))
-                  if s["median_s"][a] >= s["median_s"][b]]
-        L.append("Segment not faster than line at: " + (", ".join(slower) if slower else "no size") + ".\n")
-        L.append("### Median time (ms, unstable on a shared machine)\n")
-        L.append("| method | " + " | ".join(f"n = {c}" for c in cols) + " |")
-        L.append("|---|" + "---|" * len(cols))
-        for k, (label, _) in METHODS.items():
-            L.append(f"| {label} | " + " | ".join(_fmt_ms(s["median_s"][k]) for s in sizes) + " |")
-        L.append("")
-        L.append("### Output size (matches returned; neighbours for knnMatch)\n")
-        L.append("| method | " + " | ".join(f"n = {c}" for c in cols) + " |")
-        L.append("|---|" + "---|" * len(cols))
-        for k, (label, _) in METHODS.items():
-            L.append(f"| {label} | " + " | ".join(str(s["output_size"][k]) for s in sizes) + " |")
-        L.append("")
-
-    b = res["binary"]
-    L.append(f"## Binary descriptors: ORB, pose `{b['pose']}`\n")
-    L.append(f"`cv2.ORB_create(nfeatures=n)` on the same renders: {b['n1']} / {b['n2']} keypoints; "
-             "`cv2.NORM_HAMMING` everywhere. Median of the interleaved rounds; the line / segment figure is the "
-             "median per-round ratio with a 95 % paired bootstrap interval, as above.\n")
-    L.append("| method | x faster than BFMatcher | median (ms) | output size |")
-    L.append("|---|---|---|---|")
-    for k, v in b["median_s"].items():
-        L.append(f"| {k} | {_fmt_x(b['x_faster_than_bf'][k])} | {_fmt_ms(v)} | {b['output_size'][k]} |")
-    L.append("")
-    L.append("Line / segment time: " + ", ".join(f"{what} {_fmt_ci(v)}" for what, v in b["line_vs_segment"].items())
-             + ".\n")
-
-    f = res["filter"]
-    L.append(f"## `filter` on {f['matches']:,} matches\n")
-    L.append(f"{f['matches']:,} random index pairs between the {f['n1']} / {f['n2']} strongest keypoints of the "
-             f"`{f['pose']}` pair (kept: segment {f['kept']['segment']}, line {f['kept']['line']}); median of "
-             f"{cfg['repeats']} after a warm-up. `SegmentMatcher.filter` takes `cv2.DMatch` and `cv2.KeyPoint` lists "
-             "(and converts them); `filter_pairs` takes arrays.\n")
-    L.append("| call | median (ms) |")
-    L.append("|---|---|")
-    for k, v in f["median_s"].items():
-        L.append(f"| {k} | {_fmt_ms(v)} |")
-    L.append("")
-    path.write_text("\n".join(L))
-
-
 def _image_size(text: str):
     try:
         w, h = (int(v) for v in text.lower().split("x"))
@@ -484,14 +481,27 @@ def _sizes(text: str):
     return out
 
 
+def _threads(text: str):
+    try:
+        out = tuple(int(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated thread counts, got {text!r}") from None
+    if not out or min(out) < 1:
+        raise argparse.ArgumentTypeError(f"thread counts must be >= 1, got {text!r}")
+    return tuple(sorted(set(out)))
+
+
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--quick", action="store_true", help="one pose (forward), n = 2k and 5k")
-    p.add_argument("--repeats", type=int, default=REPEATS, help=f"timed repeats per method (default {REPEATS})")
+    p.add_argument("--repeats", type=int, default=REPEATS, help=f"timed rounds per method (default {REPEATS})")
+    p.add_argument("--threads", type=_threads, default=None,
+                   help="thread counts to compare (default 1,2; 1 on a one-core machine)")
     p.add_argument("--out", type=Path, default=None,
                    help="output directory (default benchmarks/results; benchmarks/results/quick with --quick)")
     # for the smoke test and experiments
     p.add_argument("--sizes", type=_sizes, default=None, help=argparse.SUPPRESS)
+    p.add_argument("--race-sizes", type=_sizes, default=None, help=argparse.SUPPRESS)
     p.add_argument("--poses", type=lambda s: tuple(s.split(",")), default=None, help=argparse.SUPPRESS)
     p.add_argument("--image-size", type=_image_size, default=IMAGE_SIZE, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
@@ -505,13 +515,21 @@ def main(argv=None) -> int:
     args = parse_args(argv)
     sizes = args.sizes or (QUICK_SIZES if args.quick else SIZES)
     poses = args.poses or (QUICK_POSES if args.quick else POSES)
+    race_sizes = args.race_sizes or (sizes if args.quick or args.sizes else RACE_SIZES)
+    thread_counts = args.threads or ((1, 2) if (os.cpu_count() or 1) >= 2 else (1,))
+    stage_n = min(TARGET_N, max(sizes))
     command = " ".join(["python", SCRIPT] + [shlex.quote(a) for a in argv])
     load0 = os.getloadavg()[0]
     meta = machine_metadata()  # at the start: the commit of the code that runs
     meta["episeg_cv_uncommitted_changes"] = package_dirty()
     t_start = time.perf_counter()
-    progress(f"{command}: poses {', '.join(poses)}; sizes {', '.join(map(str, sizes))}; repeats {args.repeats}")
-    results = {name: run_pose(name, sizes, args.repeats, args.image_size) for name in poses}
+    progress(f"{command}: poses {', '.join(poses)}; sizes {', '.join(map(str, sizes))}; threads "
+             f"{', '.join(map(str, thread_counts))}; repeats {args.repeats}")
+    results = {name: run_pose(name, sizes, args.repeats, args.image_size, thread_counts) for name in poses}
+    stages = run_stages(poses[0], stage_n, max(args.repeats, 21 if stage_n == TARGET_N else args.repeats),
+                        args.image_size, thread_counts)
+    race = run_race(poses[0], race_sizes, args.repeats, args.image_size, thread_counts)
+    set_threads(thread_counts[-1])
     filt = run_filter(args.repeats, args.image_size, poses[0], n=min(TARGET_N, max(sizes)))
     binary = run_binary(args.repeats, args.image_size, poses[0], n=min(TARGET_N, max(sizes)))
     blas = [{k: i.get(k) for k in ("internal_api", "num_threads", "version")} for i in threadpool_info()
@@ -520,32 +538,31 @@ def main(argv=None) -> int:
         "command": command,
         "machine": meta,
         "load_average": [load0, os.getloadavg()[0]],
-        "threads": {"cv2": cv2.getNumThreads(), "blas": ", ".join(sorted({f"{b['internal_api']} {b['num_threads']}"
-                                                                         for b in blas})) or "none", "blas_info": blas},
+        "threads": {"counts": list(thread_counts), "blas": ", ".join(sorted({f"{b['internal_api']} {b['num_threads']}"
+                                                                              for b in blas})) or "none",
+                    "blas_info": blas},
         "config": {"image_size": list(args.image_size), "sizes": list(sizes), "poses": list(poses),
-                   "repeats": args.repeats, "warmup": 1, "statistic": "median", "ratio": RATIO, "tol": TOL,
+                   "threads": list(thread_counts), "repeats": args.repeats, "warmup": 1, "statistic": "median",
+                   "ratio": RATIO, "tol": TOL, "race_sizes": list(race_sizes), "stage_n": stage_n,
                    "sift": {"nfeatures": 0, "contrastThreshold": 0.0, "keep": "n strongest by response"},
                    "flann": {"index": FLANN_INDEX, "search": FLANN_SEARCH},
                    "methods": {k: v[1] for k, v in METHODS.items()}},
         "poses": results,
-        "targets": None,
+        "stages": stages,
+        "race": race,
         "filter": filt,
         "binary": binary,
-        "wall_time_s": None,
     }
-    res["targets"] = targets(results)
+    amdahl_n = TARGET_N if any(str(TARGET_N) in r["sizes"] for r in results.values()) else max(sizes)
+    res["amdahl_n"] = amdahl_n
+    res["amdahl"] = amdahl_methods(results, amdahl_n)
+    res["goals"] = {"poses": pose_goals(results), "floor": floor_goal(stages), "race": race_goal(race)}
     res["wall_time_s"] = time.perf_counter() - t_start
     args.out = args.out or (RESULTS / "quick" if args.quick else RESULTS)  # --quick never overwrites the full run
     args.out.mkdir(parents=True, exist_ok=True)
-    stem = "speed"
-    (args.out / f"{stem}.json").write_text(json.dumps(res, indent=2) + "\n")
-    write_markdown(args.out / f"{stem}.md", res)
-    progress(f"wrote {args.out / (stem + '.md')} and {stem}.json in {res['wall_time_s']:.0f} s")
-    for pose, t in res["targets"].items():
-        if t is not None:
-            print(f"{pose}: segment match {t['segment_match_x']:.1f}x, knnMatch {t['segment_knn_x']:.1f}x faster than "
-                  f"BF; line/segment {_fmt_ci(t['segment_match_vs_line'])} / {_fmt_ci(t['segment_knn_vs_line'])}; "
-                  f"target {'met' if t['met'] else 'not met'}")
+    (args.out / "speed.json").write_text(json.dumps(res, indent=2) + "\n")
+    write_markdown(args.out / "speed.md", res)
+    progress(f"wrote {args.out / 'speed.md'} and speed.json in {res['wall_time_s']:.0f} s")
     return 0
 
 

@@ -17,7 +17,10 @@ The package, in the direction the data flows:
 - :mod:`.scenes` and :mod:`.datasets`: synthetic and real test data;
 - :mod:`.colmap`: posed collections into a COLMAP database
   (``from episeg_cv import colmap``; needs pycolmap);
-- :mod:`.cli`: the ``episeg`` command.
+- :mod:`.cli`: the ``episeg`` command;
+- :func:`set_num_threads` / :func:`get_num_threads` (:mod:`.threads`): how many
+  threads the compiled kernels use, like ``cv2.setNumThreads``; every core by
+  default, and the same results for every count.
 """
 
 __version__ = "0.1.0"
@@ -35,6 +38,7 @@ from .opencv import SegmentMatcher, keypoints_to_array  # noqa: E402
 from .estimation import EstimatedGeometry, GeometryEstimationError, estimate_geometry, match_without_pose  # noqa: E402
 from .fundamental import FundamentalGeometry  # noqa: E402
 from .refinement import PoseRefinement, refine_pose  # noqa: E402
+from .threads import get_num_threads, set_num_threads  # noqa: E402
 from .uncertainty import EpipolarBands, pose_covariance  # noqa: E402
 
 __all__ = [
@@ -78,6 +82,8 @@ __all__ = [
     "draw_segment_figure",
     "draw_matches",
     "save_image",
+    "set_num_threads",
+    "get_num_threads",
     "scenes",
     "datasets",
     "__version__",

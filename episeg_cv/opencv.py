@@ -16,6 +16,7 @@ import numpy as np
 from ._validation import as_index_pairs, as_nonnegative, as_norm, as_points, as_positive_int
 from .geometry import as_geometry
 from .matching import auto, guided
+from .matching.candidates import CandidateIndex
 from .matching.config import AcceptRule, SearchConfig, resolve
 from .matching.filtering import explain, keep_mask
 
@@ -152,21 +153,62 @@ class SegmentMatcher:
     def _cv(d):  # cv2 takes float32 or uint8 only
         return d.astype(np.float32) if d.dtype == np.float64 else d
 
+    def _index(self, index, inp):
+        if self.constraint == "none":
+            if index is not None:
+                raise ValueError("constraint 'none' has no candidate index; index must be None")
+            return None
+        return guided.check_index(index, inp, self.geometry, self.search)
+
+    def index(self, queryKeypoints, trainKeypoints) -> CandidateIndex:
+        """The candidate index of a pair of keypoint sets, to pass as ``index=`` to several calls on that pair.
+
+        The segments and the index depend on the keypoints and the geometry, not on the
+        descriptors; building them once saves that part (about a third of :meth:`match` at 10k
+        keypoints) when, for example, :meth:`knnMatch` and :meth:`match` run on the same pair.
+        Each call checks that the index fits its keypoints.
+
+        Examples
+        --------
+        >>> import cv2, numpy as np
+        >>> from episeg_cv import TwoViewGeometry, SegmentMatcher
+        >>> K = [[100, 0, 50], [0, 100, 50], [0, 0, 1]]
+        >>> g = TwoViewGeometry(K, K, np.eye(3), [-1, 0, 0], image_size1=(100, 100), image_size2=(100, 100))
+        >>> kp1, kp2 = [cv2.KeyPoint(60, 20, 5)], [cv2.KeyPoint(40, 20, 5), cv2.KeyPoint(30, 20, 5)]
+        >>> des1, des2 = np.eye(1, 8, dtype=np.float32), np.eye(2, 8, dtype=np.float32)
+        >>> m = SegmentMatcher(g, cv2.NORM_L2, pad=0)
+        >>> idx = m.index(kp1, kp2)
+        >>> [[d.trainIdx for d in row] for row in m.knnMatch(des1, des2, kp1, kp2, k=2, index=idx)]
+        [[0, 1]]
+        >>> [d.trainIdx for d in m.match(des1, des2, kp1, kp2, index=idx)]
+        [0]
+        """
+        if self.constraint == "none":
+            raise ValueError("constraint 'none' has no candidate index")
+        return CandidateIndex(self.geometry, keypoints_to_array(queryKeypoints, "queryKeypoints"),
+                              keypoints_to_array(trainKeypoints, "trainKeypoints"), search=self.search)
+
     # -- the cv2.BFMatcher API -----------------------------------------------------------
-    def match(self, queryDescriptors, trainDescriptors, queryKeypoints, trainKeypoints) -> list:
-        """Accepted matches, one at most per query, as ``list[cv2.DMatch]`` (``imgIdx = 0``)."""
+    def match(self, queryDescriptors, trainDescriptors, queryKeypoints, trainKeypoints, *, index=None) -> list:
+        """Accepted matches, one at most per query, as ``list[cv2.DMatch]`` (``imgIdx = 0``).
+
+        ``index``: a :meth:`index` of these keypoints to reuse, or None."""
         inp = self._inputs(queryDescriptors, trainDescriptors, queryKeypoints, trainKeypoints)
+        index = self._index(index, inp)
         d1, d2 = inp.distances.raw1, inp.distances.raw2
         if len(d1) == 0 or len(d2) == 0:
             return []
         if self.constraint == "none":
             return list(self._bf().match(self._cv(d1), self._cv(d2)))
-        return _to_dmatches(*auto.match(inp, self.geometry, self.search, self.rule))
+        return _to_dmatches(*auto.match(inp, self.geometry, self.search, self.rule, index=index))
 
-    def knnMatch(self, queryDescriptors, trainDescriptors, queryKeypoints, trainKeypoints, k) -> list:
-        """The ``k`` nearest candidates of each query: one list per query, shorter when fewer exist."""
+    def knnMatch(self, queryDescriptors, trainDescriptors, queryKeypoints, trainKeypoints, k, *, index=None) -> list:
+        """The ``k`` nearest candidates of each query: one list per query, shorter when fewer exist.
+
+        ``index``: a :meth:`index` of these keypoints to reuse, or None."""
         k = as_positive_int(k, "k")
         inp = self._inputs(queryDescriptors, trainDescriptors, queryKeypoints, trainKeypoints)
+        index = self._index(index, inp)
         d1, d2 = inp.distances.raw1, inp.distances.raw2
         if self.crossCheck and k != 1:
             raise ValueError(f"k must be 1 when crossCheck is True (as in cv2.BFMatcher), got {k}")
@@ -178,13 +220,17 @@ class SegmentMatcher:
             return [list(m) for m in self._bf().knnMatch(self._cv(d1), self._cv(d2), k=k)]
         if self.crossCheck:
             rule = AcceptRule(ratio=1.0, mutual=False, pad=0, cross_check=True)
-            return _per_query(len(d1), *auto.match(inp, self.geometry, self.search, rule))
-        return _per_query(len(d1), *auto.knn(inp, self.geometry, self.search, k, self.rule).pairs())
+            return _per_query(len(d1), *auto.match(inp, self.geometry, self.search, rule, index=index))
+        return _per_query(len(d1), *auto.knn(inp, self.geometry, self.search, k, self.rule, index=index).pairs())
 
-    def radiusMatch(self, queryDescriptors, trainDescriptors, queryKeypoints, trainKeypoints, maxDistance) -> list:
-        """All candidates within ``maxDistance`` of each query, nearest first: one list per query."""
+    def radiusMatch(self, queryDescriptors, trainDescriptors, queryKeypoints, trainKeypoints, maxDistance, *,
+                    index=None) -> list:
+        """All candidates within ``maxDistance`` of each query, nearest first: one list per query.
+
+        ``index``: a :meth:`index` of these keypoints to reuse, or None."""
         max_distance = as_nonnegative(maxDistance, "maxDistance")
         inp = self._inputs(queryDescriptors, trainDescriptors, queryKeypoints, trainKeypoints)
+        index = self._index(index, inp)
         d1, d2 = inp.distances.raw1, inp.distances.raw2
         if len(d1) == 0:
             return []
@@ -192,7 +238,8 @@ class SegmentMatcher:
             return [[] for _ in range(len(d1))]
         if self.constraint == "none":
             return [list(m) for m in self._bf().radiusMatch(self._cv(d1), self._cv(d2), max_distance)]
-        return _per_query(len(d1), *auto.radius(inp, self.geometry, self.search, max_distance, self.rule))
+        return _per_query(len(d1), *auto.radius(inp, self.geometry, self.search, max_distance, self.rule,
+                                                index=index))
 
     # -- after matching ----------------------------------------------------------------
     def _pairs_and_points(self, matches, queryKeypoints, trainKeypoints):

@@ -16,7 +16,7 @@ _WORKER_LIMITED = False
 
 
 def _single_thread():
-    """One thread per worker process, for OpenCV and for BLAS (idle BLAS threads spin and steal the core).
+    """One thread per worker process, for OpenCV, BLAS and the compiled kernels (idle threads spin and steal the core).
 
     Without it, two workers on two cores ran slower than one process.
     """
@@ -24,8 +24,11 @@ def _single_thread():
     if not _WORKER_LIMITED:
         from threadpoolctl import threadpool_limits
 
+        from ..threads import set_num_threads
+
         cv2.setNumThreads(1)
         threadpool_limits(1)
+        set_num_threads(1)
         _WORKER_LIMITED = True
 
 

@@ -29,14 +29,18 @@ or the Hamming distance of packed bits, in float32. Binary descriptors come as
 ``uint64`` words (rows zero-padded to a multiple of 8 bytes; see
 :func:`as_words`), counted with the CPU's population count. They
 rank candidates; the distances reported to users are recomputed as ``cv2``
-computes them (:func:`episeg_cv.matching._exact`).
+computes them (:meth:`episeg_cv.matching.distances.Distances.exact`).
+
+The kernels that run on several threads have a serial twin (``name`` and
+``name_parallel``); :func:`episeg_cv.threads.run` picks one. Both give the
+same bits; the index build is in :mod:`._index_kernels`.
 """
 
 from __future__ import annotations
 
 import numba as nb
 import numpy as np
-from numba import types
+from numba import prange, types
 from numba.extending import intrinsic
 
 #: Norm codes of the kernels.
@@ -53,9 +57,7 @@ def _is_candidate(n0, n1, off, d0, d1, mid, half, y0, y1, is_line, tol, tol2):
     across = n0 * y0 + n1 * y1 - off
     if is_line:
         return abs(across) <= tol
-    along = abs(d0 * y0 + d1 * y1 - mid) - half
-    if along < 0.0:
-        along = 0.0
+    along = max(abs(d0 * y0 + d1 * y1 - mid) - half, 0.0)  # (a select, not a branch)
     return across * across + along * along <= tol2
 
 
@@ -115,6 +117,90 @@ def _score(A, q, B, t, norm):
     return _l2sqr(A, q, B, t)
 
 
+# -- the candidate scan ---------------------------------------------------------------------
+# Every kernel that runs on several threads has a serial twin, compiled separately (a parallel region
+# costs a fork and a join, so the serial one serves one thread and small inputs: episeg_cv.threads.run).
+# Results are the same bits for every thread count: each item is computed by the same code from the same
+# inputs, and the minima below are taken under total orders, whose minimum does not depend on how the
+# items are split among threads or merged.
+
+
+@nb.njit(cache=True, nogil=True)
+def _scan_rows(r0, r1, q_sorted, q_start, q_stop, t_sorted, geo, y, is_line, tol, tol2, A, B, norm,
+               idx, sc, counts, col_s, col_i, buf_p, buf_s):
+    """Rows ``r0:r1`` of :func:`knn_scan`, the column best merged into ``col_s / col_i``.
+
+    Per row: (1) the slice's candidates compacted into ``buf_p`` without a data-dependent branch,
+    (2) their scores into ``buf_s``, (3) the top-k of the query and the column best of each keypoint
+    updated with selects (k <= 2) or by insertion (k > 2). ``B`` is in slice order (``B[p]`` is keypoint
+    ``t_sorted[p]``). Orders: a query's neighbours by (score, keypoint index), a keypoint's best query
+    by (score, query index); index -1 is "none" and loses every tie.
+    """
+    k = idx.shape[1]
+    for r in range(r0, r1):
+        q = q_sorted[r]
+        n0, n1, off, d0, d1, mid, half = geo[q, 0], geo[q, 1], geo[q, 2], geo[q, 3], geo[q, 4], geo[q, 5], geo[q, 6]
+        m = 0
+        for p in range(q_start[r], q_stop[r]):  # (1)
+            buf_p[m] = p
+            m += _is_candidate(n0, n1, off, d0, d1, mid, half, y[p, 0], y[p, 1], is_line, tol, tol2)
+        if norm == HAMMING:  # (2) (a loop per norm: the score functions keep their fast-math sums)
+            for c in range(m):
+                buf_s[c] = _hamming(A, q, B, buf_p[c])
+        elif norm == L1:
+            for c in range(m):
+                buf_s[c] = _l1(A, q, B, buf_p[c])
+        else:
+            for c in range(m):
+                buf_s[c] = _l2sqr(A, q, B, buf_p[c])
+        counts[q] += m
+        if k <= 2:  # (3)
+            s1, t1 = sc[q, 0], idx[q, 0]
+            s2, t2 = (sc[q, 1], idx[q, 1]) if k == 2 else (np.float32(np.inf), -1)
+            for c in range(m):
+                t = t_sorted[buf_p[c]]
+                s = buf_s[c]
+                lt1 = (s < s1) | ((s == s1) & ((t1 < 0) | (t < t1)))
+                lt2 = (s < s2) | ((s == s2) & ((t2 < 0) | (t < t2)))
+                ns2 = s1 if lt1 else (s if lt2 else s2)
+                nt2 = t1 if lt1 else (t if lt2 else t2)
+                s1 = s if lt1 else s1
+                t1 = t if lt1 else t1
+                s2, t2 = ns2, nt2
+                o_s, o_i = col_s[t], col_i[t]
+                b = (s < o_s) | ((s == o_s) & ((o_i < 0) | (q < o_i)))
+                col_s[t] = s if b else o_s
+                col_i[t] = q if b else o_i
+            sc[q, 0], idx[q, 0] = s1, t1
+            if k == 2:
+                sc[q, 1], idx[q, 1] = s2, t2
+        else:
+            for c in range(m):
+                t = t_sorted[buf_p[c]]
+                s = buf_s[c]
+                last = sc[q, k - 1]
+                if s < last or (s == last and (idx[q, k - 1] < 0 or t < idx[q, k - 1])):
+                    j = k - 1
+                    while j > 0 and (sc[q, j - 1] > s or (sc[q, j - 1] == s and (idx[q, j - 1] < 0 or idx[q, j - 1] > t))):
+                        sc[q, j] = sc[q, j - 1]
+                        idx[q, j] = idx[q, j - 1]
+                        j -= 1
+                    sc[q, j] = s
+                    idx[q, j] = t
+                o_s, o_i = col_s[t], col_i[t]
+                if s < o_s or (s == o_s and (o_i < 0 or q < o_i)):
+                    col_s[t] = s
+                    col_i[t] = q
+
+
+@nb.njit(cache=True, nogil=True)
+def _longest(q_start, q_stop, r0, r1):
+    n = 0
+    for r in range(r0, r1):
+        n = max(n, q_stop[r] - q_start[r])
+    return n
+
+
 @nb.njit(cache=True, nogil=True)
 def knn_scan(q_sorted, q_start, q_stop, t_sorted, geo, y, is_line, tol, tol2, A, B, norm,
              idx, sc, counts, col_s, col_i):
@@ -122,61 +208,120 @@ def knn_scan(q_sorted, q_start, q_stop, t_sorted, geo, y, is_line, tol, tol2, A,
 
     ``A (N1, D)`` are the query descriptors and ``B (S, D)`` those of the keypoints in slice order.
 
-    Writes ``idx (N1, k)`` / ``sc (N1, k)`` (best first; ties by the smaller
-    keypoint index; untouched where a query has fewer than ``k``),
-    ``counts (N1,)``, and ``col_i (N2,)`` / ``col_s (N2,)``: the nearest query
-    among those having the keypoint as a candidate (ties by the smaller query
-    index). ``sc`` and ``col_s`` must start at inf, ``idx`` and ``col_i`` at -1.
+    *Accumulates* into what it is given, so that several indexes (groups of queries) can be scanned
+    into the same arrays: ``idx (N1, k)`` / ``sc (N1, k)`` (best first; ties by the smaller keypoint
+    index; -1 / inf where a query has fewer than ``k``), ``counts (N1,)`` (added to), and
+    ``col_i (N2,)`` / ``col_s (N2,)``: the nearest query among those having the keypoint as a
+    candidate (ties by the smaller query index). Start them at -1 / inf / 0 / inf / -1.
     """
-    k = idx.shape[1]
-    for r in range(q_sorted.shape[0]):
+    n = q_sorted.shape[0]
+    m = _longest(q_start, q_stop, 0, n)
+    _scan_rows(0, n, q_sorted, q_start, q_stop, t_sorted, geo, y, is_line, tol, tol2, A, B, norm,
+               idx, sc, counts, col_s, col_i, np.empty(m, np.int64), np.empty(m, np.float32))
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def knn_scan_parallel(q_sorted, q_start, q_stop, t_sorted, geo, y, is_line, tol, tol2, A, B, norm,
+                      idx, sc, counts, col_s, col_i, bounds, tcol_s, tcol_i):
+    """:func:`knn_scan` on threads, over the row blocks ``bounds[c]:bounds[c + 1]``.
+
+    A query has one row, so its ``idx``, ``sc`` and ``counts`` are written by one block only. The
+    column best goes to per-thread arrays ``tcol_s / tcol_i (n_threads, N2)``, indexed by
+    ``numba.get_thread_id()`` (any content on entry; ``n_threads`` must be numba's thread count of the
+    launch, see :func:`episeg_cv.threads.call_parallel`), then is merged into ``col_s / col_i`` by the
+    same order.
+    """
+    nt = tcol_s.shape[0]
+    for h in prange(nt):
+        tcol_s[h, :] = np.inf
+        tcol_i[h, :] = -1
+    for c in prange(bounds.shape[0] - 1):
+        h = nb.get_thread_id()
+        m = _longest(q_start, q_stop, bounds[c], bounds[c + 1])
+        _scan_rows(bounds[c], bounds[c + 1], q_sorted, q_start, q_stop, t_sorted, geo, y, is_line, tol, tol2,
+                   A, B, norm, idx, sc, counts, tcol_s[h], tcol_i[h], np.empty(m, np.int64), np.empty(m, np.float32))
+    for t in prange(col_s.shape[0]):
+        bs, bq = col_s[t], col_i[t]
+        for h in range(nt):
+            s, q = tcol_s[h, t], tcol_i[h, t]
+            if q >= 0 and (s < bs or (s == bs and (bq < 0 or q < bq))):
+                bs, bq = s, q
+        col_s[t], col_i[t] = bs, bq
+
+
+def work_bounds(q_start: np.ndarray, q_stop: np.ndarray, blocks: int, per_row: int = 16) -> np.ndarray:
+    """``(blocks + 1,)`` row bounds cutting the rows into blocks of about equal work (slice length plus
+    ``per_row`` per row)."""
+    work = np.cumsum(q_stop - q_start + per_row)
+    total = int(work[-1]) if len(work) else 0
+    cuts = np.searchsorted(work, total * np.arange(1, blocks) / blocks, side="left") + 1
+    return np.concatenate([[0], np.minimum(cuts, len(work)), [len(work)]]).astype(np.int64)
+
+
+@nb.njit(cache=True, nogil=True)
+def _count_rows(r0, r1, q_sorted, q_start, q_stop, geo, y, is_line, tol, tol2, out):
+    for r in range(r0, r1):
         q = q_sorted[r]
         n0, n1, off, d0, d1, mid, half = geo[q, 0], geo[q, 1], geo[q, 2], geo[q, 3], geo[q, 4], geo[q, 5], geo[q, 6]
         c = 0
         for p in range(q_start[r], q_stop[r]):
-            if not _is_candidate(n0, n1, off, d0, d1, mid, half, y[p, 0], y[p, 1], is_line, tol, tol2):
-                continue
-            c += 1
-            t = t_sorted[p]
-            if norm == HAMMING:  # (_score, written out: numba's inlining of it costs ~15 % here)
-                s = _hamming(A, q, B, p)
-            elif norm == L1:
-                s = _l1(A, q, B, p)
-            else:
-                s = _l2sqr(A, q, B, p)
-            last = sc[q, k - 1]
-            if s < last or (s == last and (idx[q, k - 1] < 0 or t < idx[q, k - 1])):
-                m = k - 1
-                while m > 0 and (sc[q, m - 1] > s or (sc[q, m - 1] == s and idx[q, m - 1] > t)):
-                    sc[q, m] = sc[q, m - 1]
-                    idx[q, m] = idx[q, m - 1]
-                    m -= 1
-                sc[q, m] = s
-                idx[q, m] = t
-            if s < col_s[t] or (s == col_s[t] and (col_i[t] < 0 or q < col_i[t])):
-                col_s[t] = s
-                col_i[t] = q
-        counts[q] += c
+            c += _is_candidate(n0, n1, off, d0, d1, mid, half, y[p, 0], y[p, 1], is_line, tol, tol2)
+        out[r] = c
 
 
 @nb.njit(cache=True, nogil=True)
-def candidate_pairs(q_sorted, q_start, q_stop, t_sorted, geo, y, is_line, tol, tol2):
-    """Every candidate pair: ``(i, j)`` int64 arrays, in scan order (callers sort)."""
-    total = 0
-    for r in range(q_sorted.shape[0]):
-        total += q_stop[r] - q_start[r]
-    i = np.empty(total, dtype=np.int64)
-    j = np.empty(total, dtype=np.int64)
-    n = 0
-    for r in range(q_sorted.shape[0]):
+def _fill_rows(r0, r1, q_sorted, q_start, q_stop, t_sorted, geo, y, is_line, tol, tol2, first, i, j):
+    for r in range(r0, r1):
         q = q_sorted[r]
         n0, n1, off, d0, d1, mid, half = geo[q, 0], geo[q, 1], geo[q, 2], geo[q, 3], geo[q, 4], geo[q, 5], geo[q, 6]
+        n = first[r]
         for p in range(q_start[r], q_stop[r]):
             if _is_candidate(n0, n1, off, d0, d1, mid, half, y[p, 0], y[p, 1], is_line, tol, tol2):
                 i[n] = q
                 j[n] = t_sorted[p]
                 n += 1
-    return i[:n], j[:n]
+
+
+@nb.njit(cache=True, nogil=True)
+def candidate_pairs(q_sorted, q_start, q_stop, t_sorted, geo, y, is_line, tol, tol2):
+    """Every candidate pair: ``(i, j)`` int64 arrays, in scan order (callers sort)."""
+    n = q_sorted.shape[0]
+    total = 0
+    for r in range(n):
+        total += q_stop[r] - q_start[r]
+    i = np.empty(total, dtype=np.int64)
+    j = np.empty(total, dtype=np.int64)
+    m = 0
+    for r in range(n):
+        q = q_sorted[r]
+        n0, n1, off, d0, d1, mid, half = geo[q, 0], geo[q, 1], geo[q, 2], geo[q, 3], geo[q, 4], geo[q, 5], geo[q, 6]
+        for p in range(q_start[r], q_stop[r]):
+            if _is_candidate(n0, n1, off, d0, d1, mid, half, y[p, 0], y[p, 1], is_line, tol, tol2):
+                i[m] = q
+                j[m] = t_sorted[p]
+                m += 1
+    return i[:m], j[:m]
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def candidate_pairs_parallel(q_sorted, q_start, q_stop, t_sorted, geo, y, is_line, tol, tol2, blocks):
+    """:func:`candidate_pairs` on threads (a count per row, its prefix sum, then each row's pairs in
+    place): the same arrays in the same order."""
+    n = q_sorted.shape[0]
+    nblk = blocks
+    cnt = np.empty(n, dtype=np.int64)
+    for c in prange(nblk):
+        _count_rows(c * n // nblk, (c + 1) * n // nblk, q_sorted, q_start, q_stop, geo, y, is_line, tol, tol2, cnt)
+    first = np.empty(n + 1, dtype=np.int64)
+    first[0] = 0
+    for r in range(n):
+        first[r + 1] = first[r] + cnt[r]
+    i = np.empty(first[n], dtype=np.int64)
+    j = np.empty(first[n], dtype=np.int64)
+    for c in prange(nblk):
+        _fill_rows(c * n // nblk, (c + 1) * n // nblk, q_sorted, q_start, q_stop, t_sorted, geo, y, is_line, tol,
+                   tol2, first, i, j)
+    return i, j
 
 
 @nb.njit(cache=True, nogil=True)
@@ -189,11 +334,8 @@ def paired_scores(A, B, i, j, norm):
 
 
 @nb.njit(cache=True, nogil=True)
-def nearest_excluding(A, B, qi, tj, exclude, norm):
-    """``(len(qi),)`` smallest score of query ``qi[r]`` over the keypoints ``tj``, leaving out ``exclude[r]``
-    (inf when nothing is left)."""
-    out = np.full(qi.shape[0], np.inf, dtype=np.float32)
-    for r in range(qi.shape[0]):
+def _nearest_rows(r0, r1, A, B, qi, tj, exclude, norm, out):
+    for r in range(r0, r1):
         best = np.float32(np.inf)
         for c in range(tj.shape[0]):
             if tj[c] == exclude[r]:
@@ -202,132 +344,41 @@ def nearest_excluding(A, B, qi, tj, exclude, norm):
             if s < best:
                 best = s
         out[r] = best
+
+
+@nb.njit(cache=True, nogil=True)
+def nearest_excluding(A, B, qi, tj, exclude, norm):
+    """``(len(qi),)`` smallest score of query ``qi[r]`` over the keypoints ``tj``, leaving out ``exclude[r]``
+    (inf when nothing is left)."""
+    out = np.empty(qi.shape[0], dtype=np.float32)
+    _nearest_rows(0, qi.shape[0], A, B, qi, tj, exclude, norm, out)
     return out
 
 
-# -- building the index -----------------------------------------------------------------
-@nb.njit(cache=True, nogil=True)
-def query_frames(P, Q, line, is_line):
-    """``geo (N, 7)`` (see the module docstring) for segments ``P -> Q (N, 2)`` and unit lines ``(N, 3)``.
-
-    The segment's own unit normal and offset, or for the line constraint the line's; a
-    zero-length segment (a point) gets the direction ``(1, 0)``.
-    """
-    n = P.shape[0]
-    geo = np.empty((n, 7))
-    for q in range(n):
-        D0 = Q[q, 0] - P[q, 0]
-        D1 = Q[q, 1] - P[q, 1]
-        length = np.hypot(D0, D1)
-        d0, d1 = (D0 / length, D1 / length) if length > 0 else (1.0, 0.0)
-        if is_line:
-            n0, n1, off = line[q, 0], line[q, 1], -line[q, 2]
-        else:
-            n0, n1 = -d1, d0
-            off = n0 * P[q, 0] + n1 * P[q, 1]
-        geo[q, 0], geo[q, 1], geo[q, 2] = n0, n1, off
-        geo[q, 3], geo[q, 4] = d0, d1
-        geo[q, 5] = d0 * P[q, 0] + d1 * P[q, 1] + 0.5 * length
-        geo[q, 6] = 0.5 * length
-    return geo
+@nb.njit(cache=True, nogil=True, parallel=True)
+def nearest_excluding_parallel(A, B, qi, tj, exclude, norm, blocks):
+    """:func:`nearest_excluding` on threads (each query independent)."""
+    n = qi.shape[0]
+    out = np.empty(n, dtype=np.float32)
+    nblk = blocks
+    for c in prange(nblk):
+        _nearest_rows(c * n // nblk, (c + 1) * n // nblk, A, B, qi, tj, exclude, norm, out)
+    return out
 
 
 @nb.njit(cache=True, nogil=True)
-def slice_bounds(key_t, q_sorted, bucket, P, Q, directions, c0, c1, span, tol):
-    """``(start, stop)`` per query: the keys ``key_t`` (sorted ``bucket + rho / span + 1/2`` of the
-    keypoints) within ``tol`` of the ``rho`` interval of segment ``P[q] -> Q[q]``, ``q = q_sorted[r]``,
-    in bucket ``bucket[r]``; ``rho`` is the projection of ``x - c`` on the bucket's direction."""
-    n = q_sorted.shape[0]
-    start = np.empty(n, dtype=np.int64)
-    stop = np.empty(n, dtype=np.int64)
-    for r in range(n):
-        q, b = q_sorted[r], bucket[r]
-        r1 = (P[q, 0] - c0) * directions[b, 0] + (P[q, 1] - c1) * directions[b, 1]
-        r2 = (Q[q, 0] - c0) * directions[b, 0] + (Q[q, 1] - c1) * directions[b, 1]
-        start[r] = np.searchsorted(key_t, b + ((min(r1, r2) - tol) / span + 0.5), side="left")
-        stop[r] = np.searchsorted(key_t, b + ((max(r1, r2) + tol) / span + 0.5), side="right")
-    return start, stop
+def gather_rows(src, rows, out):
+    """``out[m] = src[rows[m]]`` (rows of any width)."""
+    for m in range(rows.shape[0]):
+        r = rows[m]
+        for c in range(src.shape[1]):
+            out[m, c] = src[r, c]
 
 
-@nb.njit(inline="always")
-def _pencil_angle(e, u, v, c0, c1, s, x0, x1):
-    """Angle in ``[0, pi)`` of the line through the epipole ``e`` and pixel ``(x0, x1)``, in the pencil
-    basis ``(u, v)``, and the first two coefficients of that line (normalised coordinates
-    ``(x - c) / s``)."""
-    y0 = (x0 - c0) / s
-    y1 = (x1 - c1) / s
-    l0 = e[1] - e[2] * y1
-    l1 = e[2] * y0 - e[0]
-    l2 = e[0] * y1 - e[1] * y0
-    a = l0 * u[0] + l1 * u[1] + l2 * u[2]
-    b = l0 * v[0] + l1 * v[1] + l2 * v[2]
-    return np.arctan2(b, a) % np.pi, l0, l1
-
-
-@nb.njit(cache=True, nogil=True)
-def pencil_intervals(e, u, v, c0, c1, s, tol, y):
-    """For each pixel ``y (N, 2)``: the interval ``[lo, lo + width]`` (mod pi) of pencil angles of the
-    lines through the epipole that pass within ``tol`` of it (``width = pi``: all of them).
-
-    The lines through the epipole at distance ``tol`` from ``y`` touch the circle of radius ``tol``
-    around it; they are found as the lines through the points ``y +- tau n``, with ``n`` the normal
-    of the line through ``y`` and ``tau = tol / sqrt(1 - (tol / r)^2)``, ``r`` the distance from ``y``
-    to the epipole. Both are grown slightly, for rounding.
-    """
-    n = y.shape[0]
-    lo = np.empty(n)
-    width = np.empty(n)
-    for k in range(n):
-        phi, l0, l1 = _pencil_angle(e, u, v, c0, c1, s, y[k, 0], y[k, 1])
-        h = max(np.hypot(l0, l1), 1e-300)
-        # tol / r (r infinite for an epipole at infinity)
-        r = np.hypot(e[0] - (y[k, 0] - c0) / s * e[2], e[1] - (y[k, 1] - c1) / s * e[2])
-        ratio = (tol / s) * abs(e[2]) / r if r > 0 else np.inf
-        if ratio >= 1 - 1e-9:  # y is within tol of the epipole: every line
-            lo[k] = 0.0
-            width[k] = np.pi
-            continue
-        tau = tol / np.sqrt(max(1.0 - ratio * ratio, 1e-18)) * (1 + 1e-9) + 1e-9
-        a, _, _ = _pencil_angle(e, u, v, c0, c1, s, y[k, 0] - tau * l0 / h, y[k, 1] - tau * l1 / h)
-        b, _, _ = _pencil_angle(e, u, v, c0, c1, s, y[k, 0] + tau * l0 / h, y[k, 1] + tau * l1 / h)
-        w = (b - a) % np.pi
-        if (phi - a) % np.pi > w:  # the arc from a to b must contain phi; otherwise it is the other one
-            lo[k] = b
-            width[k] = np.pi - w
-        else:
-            lo[k] = a
-            width[k] = w
-    return lo, width
-
-
-@nb.njit(cache=True, nogil=True)
-def spread(lo, hi, edges):
-    """Every bucket ``[edges[b], edges[b + 1])`` that each angle interval ``[lo, hi]`` overlaps (``hi``
-    may pass pi: the rest continues at 0). Returns ``(item, bucket)`` int64 arrays, each pair once."""
-    n_b = edges.shape[0] - 1
-    n = lo.shape[0]
-    first = np.empty(n, dtype=np.int64)
-    last = np.empty(n, dtype=np.int64)
-    wrap_last = np.full(n, -1, dtype=np.int64)
-    total = 0
-    for k in range(n):
-        h = min(hi[k], lo[k] + np.pi)
-        k0 = min(max(np.searchsorted(edges, lo[k], side="right") - 1, 0), n_b - 1)
-        k1 = min(max(np.searchsorted(edges, min(h, np.pi), side="right") - 1, 0), n_b - 1)
-        first[k], last[k] = k0, k1
-        total += max(k1 - k0 + 1, 0)
-        if h > np.pi:  # up to (not into) the buckets already covered
-            w1 = min(max(np.searchsorted(edges, h - np.pi, side="right") - 1, 0), n_b - 1)
-            wrap_last[k] = min(w1, k0 - 1)
-            total += wrap_last[k] + 1
-    item = np.empty(total, dtype=np.int64)
-    bucket = np.empty(total, dtype=np.int64)
-    m = 0
-    for k in range(n):
-        for b in range(first[k], last[k] + 1):
-            item[m], bucket[m] = k, b
-            m += 1
-        for b in range(0, wrap_last[k] + 1):
-            item[m], bucket[m] = k, b
-            m += 1
-    return item, bucket
+@nb.njit(cache=True, nogil=True, parallel=True)
+def gather_rows_parallel(src, rows, out, blocks):
+    """:func:`gather_rows` on threads."""
+    for m in prange(rows.shape[0]):
+        r = rows[m]
+        for c in range(src.shape[1]):
+            out[m, c] = src[r, c]

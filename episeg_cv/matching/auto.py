@@ -339,33 +339,43 @@ def plan_pairs(pairs: np.ndarray, points1: np.ndarray, points2: np.ndarray, geom
     return Plan(geometry, search, bands, est)
 
 
-def nearest(inputs, geometry, search, rule, rng=0, bucket_size=64, prefilter=False):
+def _plain_plan(p: Plan, index) -> None:
+    if index is not None and (p.bands is not None or p.estimate is not None):
+        raise ValueError("index= is for a fixed numeric tol and a geometry without covariance; "
+                         "with tol='auto' or a covariance each call builds its own index")
+
+
+def nearest(inputs, geometry, search, rule, rng=0, bucket_size=64, prefilter=False, index=None):
     """:func:`~.guided.nearest` after :func:`plan`: ``((i, j, ratio, mutual, counts), plan)``."""
     p = plan(inputs, geometry, search, rule, rng, bucket_size)
+    _plain_plan(p, index)
     if p.bands is not None:
         return banded.nearest(inputs, p.geometry, p.bands, p.search, rule, rng, bucket_size), p
-    return guided.nearest(inputs, p.geometry, p.search, rule, rng, bucket_size, prefilter), p
+    return guided.nearest(inputs, p.geometry, p.search, rule, rng, bucket_size, prefilter, index=index), p
 
 
-def match(inputs, geometry, search, rule, rng=0, bucket_size=64):
+def match(inputs, geometry, search, rule, rng=0, bucket_size=64, index=None):
     """:func:`~.guided.match` after :func:`plan`."""
     p = plan(inputs, geometry, search, rule, rng, bucket_size)
+    _plain_plan(p, index)
     if p.bands is not None:
         return banded.match(inputs, p.geometry, p.bands, p.search, rule, rng, bucket_size)
-    return guided.match(inputs, p.geometry, p.search, rule, rng, bucket_size)
+    return guided.match(inputs, p.geometry, p.search, rule, rng, bucket_size, index=index)
 
 
-def knn(inputs, geometry, search, k, rule=None, rng=0):
+def knn(inputs, geometry, search, k, rule=None, rng=0, index=None):
     """:func:`~.guided.knn` after :func:`plan`."""
     p = plan(inputs, geometry, search, rule or AcceptRule(), rng)
+    _plain_plan(p, index)
     if p.bands is not None:
         return banded.knn(inputs, p.geometry, p.bands, p.search, k)
-    return guided.knn(inputs, p.geometry, p.search, k)
+    return guided.knn(inputs, p.geometry, p.search, k, index=index)
 
 
-def radius(inputs, geometry, search, max_distance, rule=None, rng=0):
+def radius(inputs, geometry, search, max_distance, rule=None, rng=0, index=None):
     """:func:`~.guided.radius` after :func:`plan`."""
     p = plan(inputs, geometry, search, rule or AcceptRule(), rng)
+    _plain_plan(p, index)
     if p.bands is not None:
         return banded.radius(inputs, p.geometry, p.bands, p.search, max_distance)
-    return guided.radius(inputs, p.geometry, p.search, max_distance)
+    return guided.radius(inputs, p.geometry, p.search, max_distance, index=index)

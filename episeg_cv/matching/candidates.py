@@ -33,12 +33,19 @@ from __future__ import annotations
 
 import numpy as np
 
+from .. import threads
 from .._validation import as_points
 from ..geometry import EpipolarSegments, TwoViewGeometry, as_geometry
+from . import _index_kernels as _ik
 from . import _kernels
 from .config import SearchConfig, resolve
 
 __all__ = ["CandidateIndex"]
+
+#: Descriptors gathered into slice order and per-thread column arrays, reused across scans.
+_SCRATCH = threads.Scratch()
+#: Blocks of rows per thread in the parallel scan (evens out uneven slices).
+BLOCKS_PER_THREAD = 4
 
 
 class CandidateIndex:
@@ -112,26 +119,61 @@ class CandidateIndex:
         self._P, self._Q = np.ascontiguousarray(self._P), np.ascontiguousarray(self._Q)
         self._line = np.ascontiguousarray(np.where(np.isfinite(seg.line), seg.line, 0.0))
         # the kernels' per-query frame (rows of queries without a segment are never read)
-        self._geo = _kernels.query_frames(self._P, self._Q, self._line, self.constraint == "line")
+        self._geo = threads.run(_ik.query_frames, _ik.query_frames_parallel, len(self._P), self._P, self._Q,
+                                self._line, self.constraint == "line")
         self._tol2 = self.tol * self.tol * (1 + 1e-9) + 1e-12
         #: Query ``q_sorted[r]`` is compared with the keypoints ``t_sorted[q_start[r]:q_stop[r]]``.
         self.q_sorted, self.q_start, self.q_stop, self.t_sorted = self._build(max(int(bucket_size), 1))
-        self._y_sorted = self.points2[self.t_sorted]
+        self._y_sorted = np.empty((len(self.t_sorted), 2))
+        _gather(self.points2, self.t_sorted, self._y_sorted)
 
     def run(self, kernel, *args):
-        """Call a kernel of :mod:`._kernels` on the slices and the exact test (kernel arguments follow)."""
+        """Call a serial kernel of :mod:`._kernels` on the slices and the exact test (kernel arguments follow)."""
         return kernel(self.q_sorted, self.q_start, self.q_stop, self.t_sorted, self._geo, self._y_sorted,
                       self.constraint == "line", self.tol, self._tol2, *args)
 
+    def scan(self, a: np.ndarray, b: np.ndarray, norm: int, idx: np.ndarray, sc: np.ndarray, counts: np.ndarray,
+             col_s: np.ndarray, col_i: np.ndarray) -> None:
+        """Score every candidate pair; *accumulate* the results into the arrays given.
+
+        ``a (N1, D)`` / ``b (N2, D)`` are the scoring arrays of :class:`~.distances.Distances` and
+        ``norm`` its kernel code. Merged into (never reset): ``idx (N1, k)`` intp / ``sc (N1, k)``
+        float32, each query's ``k`` best candidates (ties by the smaller keypoint index; -1 / inf
+        where none), ``counts (N1,)`` intp (candidates added), ``col_s (N2,)`` float32 / ``col_i
+        (N2,)`` intp, each keypoint's best query (ties by the smaller query index). So several
+        indexes over disjoint groups of queries can be scanned into the same arrays. The result is
+        the same for every thread count (:func:`episeg_cv.set_num_threads`).
+        """
+        rows, n_s = len(self.q_sorted), len(self.t_sorted)
+        if rows == 0:
+            return
+        b_sorted = _SCRATCH.get("b_sorted", (n_s, b.shape[1]), b.dtype)  # each slice's rows contiguous
+        _gather(b, self.t_sorted, b_sorted)
+        if not threads.use_parallel(rows):
+            self.run(_kernels.knn_scan, a, b_sorted, norm, idx, sc, counts, col_s, col_i)
+            return
+        n = threads.get_num_threads()
+        bounds = _kernels.work_bounds(self.q_start, self.q_stop, BLOCKS_PER_THREAD * n)
+        tcol_s = _SCRATCH.get("tcol_s", (n, len(col_s)), np.float32)
+        tcol_i = _SCRATCH.get("tcol_i", (n, len(col_i)), col_i.dtype)
+        threads.call_parallel(self.run, _kernels.knn_scan_parallel, a, b_sorted, norm, idx, sc, counts, col_s,
+                              col_i, bounds, tcol_s, tcol_i)
+
+    def candidate_lists(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every candidate pair as ``(i, j)`` int64 arrays, in scan order (unsorted)."""
+        if threads.use_parallel(len(self.q_sorted)):
+            return threads.call_parallel(self.run, _kernels.candidate_pairs_parallel, threads.blocks())
+        return self.run(_kernels.candidate_pairs)
+
     def pairs(self) -> np.ndarray:
         """All candidate pairs ``(K, 2)`` of ``(query, train)`` indices, sorted by query then train."""
-        i, j = self.run(_kernels.candidate_pairs)
+        i, j = self.candidate_lists()
         o = np.lexsort((j, i))
         return np.column_stack([i[o], j[o]]).astype(np.intp)
 
     def candidate_counts(self) -> np.ndarray:
         """(N1,) number of candidates of each query."""
-        i, _ = self.run(_kernels.candidate_pairs)
+        i, _ = self.candidate_lists()
         return np.bincount(i, minlength=len(self.points1)).astype(np.intp)
 
     # -- building ------------------------------------------------------------------
@@ -159,45 +201,44 @@ class CandidateIndex:
             return z, z, z, z
         pencil = self._pencil()
         y = self.points2
+        c0, c1 = float(self._c[0]), float(self._c[1])
         if pencil is None:  # pure rotation: every segment is a point; one bucket, rho along x
             q_sorted, qb = q_ok, np.zeros(q_ok.size, dtype=np.intp)
-            t_idx, t_bucket = np.arange(n2), np.zeros(n2, dtype=np.intp)
-            directions = np.array([[1.0, 0.0]])
+            edges = np.array([0.0, np.pi])
+            lo, width = np.zeros(n2), np.full(n2, np.pi)
         else:
             e, u, v = pencil
-            # queries: the pencil angle of their epipolar line, taken in normalised coordinates
-            line = self._line[q_ok]
-            ln = np.column_stack([line[:, 0] * self._s, line[:, 1] * self._s,
-                                  line[:, 0] * self._c[0] + line[:, 1] * self._c[1] + line[:, 2]])
-            q_phi = np.mod(np.arctan2(ln @ v, ln @ u), np.pi)
-            q_phi[~np.any(line != 0, axis=1)] = 0.0  # undefined line: the point is the epipole itself
-            # the queries in pencil order; the buckets are runs of about bucket_size of them
+            # queries: the pencil angle of their epipolar line, taken in normalised coordinates; in pencil
+            # order, the buckets are runs of about bucket_size of them
+            q_phi = threads.run(_ik.query_phi, _ik.query_phi_parallel, q_ok.size, self._line, q_ok, self._s, c0, c1,
+                                u, v)
             order = np.argsort(q_phi)
-            q_sorted, q_phi, line = q_ok[order], q_phi[order], line[order]
+            q_sorted, q_phi = q_ok[order], q_phi[order]
             n_b = max(1, int(np.ceil(q_ok.size / bucket_size)))
             edges = np.concatenate([[0.0], q_phi[(np.arange(1, n_b) * q_ok.size) // n_b], [np.pi]])
             qb = np.clip(np.searchsorted(edges, q_phi, side="right") - 1, 0, n_b - 1)
-            # keypoints: the interval of pencil angles of lines within tol of them, and its buckets
-            lo, width = _kernels.pencil_intervals(e, u, v, self._c[0], self._c[1], self._s, self.tol, y)
-            t_idx, t_bucket = _kernels.spread(lo, lo + width, edges)
-            # one direction per bucket: the mean direction of its lines, averaged as doubled angles
-            # (the direction (-b, a) of a unit line (a, b, c), doubled, is (b^2 - a^2, -2ab))
-            a, b = line[:, 0], line[:, 1]
-            half = 0.5 * np.arctan2(np.bincount(qb, -2 * a * b, n_b), np.bincount(qb, b * b - a * a, n_b))
-            directions = np.column_stack([np.cos(half), np.sin(half)])
-        # rho: position along the bucket direction, scaled into [0, 1) so that (bucket + rho) sorts
+            # keypoints: the interval of pencil angles of lines within tol of them
+            lo, width = threads.run(_ik.pencil_intervals, _ik.pencil_intervals_parallel, n2, e, u, v, c0, c1,
+                                    self._s, self.tol, y)
+        n_b = len(edges) - 1
+        bstart = np.searchsorted(qb, np.arange(n_b + 1), side="left")
+        # per bucket: a direction (the mean of its lines'), rho along it, each query's rho interval and their hull
         span = 2.0 * (self._s + 2 * self.tol + 1.0)
-
-        def rho(points, bucket):
-            return (points[:, 0] - self._c[0]) * directions[bucket, 0] + (points[:, 1] - self._c[1]) * directions[bucket, 1]
-
-        key_t = t_bucket + (rho(y[t_idx], t_bucket) / span + 0.5)
-        order_t = np.argsort(key_t)
-        key_t, t_sorted = key_t[order_t], t_idx[order_t]
-        start, stop = _kernels.slice_bounds(key_t, q_sorted, qb, self._P, self._Q, directions, self._c[0],
-                                            self._c[1], span, self.tol)
+        directions, klo, khi, hull = threads.run(_ik.bucket_frames, _ik.bucket_frames_parallel, q_sorted.size,
+                                                 q_sorted, bstart, self._line, self._P, self._Q, pencil is not None,
+                                                 c0, c1, span, self.tol)
+        # each keypoint in the buckets its interval overlaps (within the hull), sorted by bucket then rho
+        t_sorted, key_t, tstart = threads.run(_ik.spread_keys, _ik.spread_keys_parallel, n2, lo, width, edges, y,
+                                              directions, c0, c1, span, hull)
+        start, stop = threads.run(_ik.slice_bounds, _ik.slice_bounds_parallel, q_sorted.size, key_t, tstart, qb,
+                                  klo, khi)
         keep = stop > start
         return q_sorted[keep], start[keep], stop[keep], t_sorted
+
+
+def _gather(src: np.ndarray, rows: np.ndarray, out: np.ndarray) -> None:
+    """``out[m] = src[rows[m]]``, on threads for many rows."""
+    threads.run(_kernels.gather_rows, _kernels.gather_rows_parallel, len(rows), src, rows, out)
 
 
 def _cross(a, b):

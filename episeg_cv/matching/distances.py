@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .. import threads
 from . import _kernels
 
 __all__ = ["Distances"]
@@ -55,7 +56,8 @@ class Distances:
         """
         qi, tj, exclude = (np.asarray(v, dtype=np.int64) for v in (qi, tj, exclude))
         if self.norm not in ("l2", "l2sqr"):
-            return _kernels.nearest_excluding(self.a, self.b, qi, tj, exclude, self.code)
+            return threads.run(_kernels.nearest_excluding, _kernels.nearest_excluding_parallel, len(qi), self.a,
+                               self.b, qi, tj, exclude, self.code)
         out = np.empty(len(qi), dtype=np.float32)
         if len(qi) == 0 or len(tj) == 0:
             out.fill(np.inf)
@@ -68,6 +70,11 @@ class Distances:
         n = min(chunk, len(qi))
         rows = np.empty((n, self.a.shape[1]), dtype=np.float32)
         prod = np.empty((n, len(tj)), dtype=np.float32)
+        with threads.blas_limit():
+            self._nearest_l2(qi, pos, hit, bt, bb, rows, prod, chunk, out)
+        return out
+
+    def _nearest_l2(self, qi, pos, hit, bt, bb, rows, prod, chunk, out):
         for a in range(0, len(qi), chunk):
             z = min(a + chunk, len(qi))
             r = rows[:z - a]
@@ -80,7 +87,6 @@ class Distances:
             h = np.flatnonzero(hit[a:z])
             p[h, pos[a:z][h]] = np.inf
             np.min(p, axis=1, out=out[a:z])
-        return out
 
     def to_distance(self, scores: np.ndarray) -> np.ndarray:
         """Scores -> distances in the units of the norm (the square root for L2)."""

@@ -25,13 +25,12 @@ import numpy as np
 
 from .._validation import as_descriptor_pair, as_nonnegative, as_norm, as_points_of, as_positive_int
 from ..geometry import TwoViewGeometry, as_geometry
-from . import _kernels
 from .candidates import CandidateIndex
 from .config import AcceptRule, SearchConfig, resolve
 from .distances import Distances
 
 __all__ = ["MatchInputs", "Neighbors", "GuidedMatches", "knn_descriptors", "radius_descriptors", "guided_matches",
-           "match_descriptors", "knn", "radius", "nearest", "match"]
+           "match_descriptors", "knn", "radius", "nearest", "match", "check_index"]
 
 NAMES = ("descriptors1", "descriptors2", "points1", "points2")
 
@@ -101,19 +100,24 @@ class _Scan:
     scores: np.ndarray
     counts: np.ndarray
     column_best: np.ndarray
+    column_scores: np.ndarray
+
+    @classmethod
+    def empty(cls, n1: int, n2: int, k: int) -> "_Scan":
+        """Accumulators for :meth:`CandidateIndex.scan`: nothing found yet."""
+        return cls(np.full((n1, k), -1, dtype=np.intp), np.full((n1, k), np.inf, dtype=np.float32),
+                   np.zeros(n1, dtype=np.intp), np.full(n2, -1, dtype=np.intp), np.full(n2, np.inf, dtype=np.float32))
+
+    def add(self, index: CandidateIndex, dist: Distances) -> "_Scan":
+        """Merge the candidates of ``index`` (its queries and keypoints are rows of ``dist``) into this scan."""
+        index.scan(dist.a, dist.b, dist.code, self.indices, self.scores, self.counts, self.column_scores,
+                   self.column_best)
+        return self
 
 
 def _scan(index: CandidateIndex, dist: Distances, k: int) -> _Scan:
     """The k nearest candidates of each query, the nearest query of each keypoint, and the counts."""
-    n1, n2 = len(index.points1), len(index.points2)
-    idx = np.full((n1, k), -1, dtype=np.intp)
-    sc = np.full((n1, k), np.inf, dtype=np.float32)
-    counts = np.zeros(n1, dtype=np.intp)
-    col_s = np.full(n2, np.inf, dtype=np.float32)
-    col_i = np.full(n2, -1, dtype=np.intp)
-    b_sorted = np.take(dist.b, index.t_sorted, axis=0)  # each slice's descriptors in contiguous memory
-    index.run(_kernels.knn_scan, dist.a, b_sorted, dist.code, idx, sc, counts, col_s, col_i)
-    return _Scan(idx, sc, counts, col_i)
+    return _Scan.empty(len(index.points1), len(index.points2), k).add(index, dist)
 
 
 def _guided_search(search: SearchConfig) -> SearchConfig:
@@ -122,10 +126,46 @@ def _guided_search(search: SearchConfig) -> SearchConfig:
     return search
 
 
+def _index(inputs: MatchInputs, geometry: TwoViewGeometry, search: SearchConfig, bucket_size: int = 64,
+           index: CandidateIndex | None = None) -> CandidateIndex:
+    """The caller's index (checked by :func:`check_index`), or a new one."""
+    if index is not None:
+        return index
+    return CandidateIndex.build(geometry, inputs.points1, inputs.points2, _guided_search(search), bucket_size)
+
+
+def check_index(index, inputs: MatchInputs, geometry: TwoViewGeometry, search: SearchConfig):
+    """``index`` itself when it was built for these points, geometry and search (or is None); else an error.
+
+    Reusing an index skips the segments and the index build, the part of a call that does not
+    depend on the descriptors (about a third of ``match`` at 10k keypoints): for example
+    ``knnMatch`` and ``match`` on the same pair. It is checked against the call's inputs, so that a
+    stale index cannot give wrong candidates.
+    """
+    if index is None:
+        return None
+    if not isinstance(index, CandidateIndex):
+        raise TypeError(f"index must be a CandidateIndex or None, got {type(index).__name__}")
+    g = index.geometry
+    same_geometry = g is geometry or (
+        type(g) is type(geometry) and g.image_size1 == geometry.image_size1 and g.image_size2 == geometry.image_size2
+        and all(np.array_equal(getattr(g, a), getattr(geometry, a))
+                for a in ("infinity_homography", "epipole_homogeneous")))
+    if not same_geometry:
+        raise ValueError("index was built for another geometry")
+    if index.search != _guided_search(search):
+        raise ValueError(f"index was built for {index.search!r}, this call searches {search!r}")
+    for name, a, b in (("points1", index.points1, inputs.points1), ("points2", index.points2, inputs.points2)):
+        if a.shape != b.shape or not np.array_equal(a, b):
+            raise ValueError(f"index was built for other {name} (queries: image 1, train: image 2)")
+    return index
+
+
 # -- on checked inputs ---------------------------------------------------------------------------
-def knn(inputs: MatchInputs, geometry: TwoViewGeometry, search: SearchConfig, k: int) -> Neighbors:
-    """:func:`knn_descriptors` on checked inputs."""
-    index = CandidateIndex.build(geometry, inputs.points1, inputs.points2, _guided_search(search))
+def knn(inputs: MatchInputs, geometry: TwoViewGeometry, search: SearchConfig, k: int,
+        index: CandidateIndex | None = None) -> Neighbors:
+    """:func:`knn_descriptors` on checked inputs (``index``: a checked index to reuse, or None)."""
+    index = _index(inputs, geometry, search, index=index)
     if k > 2:  # no query has more neighbours than candidates: the (N1, k) arrays need no more columns
         k = max(1, min(k, int(index.candidate_counts().max(initial=0))))
     res = _scan(index, inputs.distances, k)
@@ -136,11 +176,11 @@ def knn(inputs: MatchInputs, geometry: TwoViewGeometry, search: SearchConfig, k:
 
 
 def radius(inputs: MatchInputs, geometry: TwoViewGeometry, search: SearchConfig,
-           max_distance: float) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`radius_descriptors` on checked inputs."""
-    index = CandidateIndex.build(geometry, inputs.points1, inputs.points2, _guided_search(search))
+           max_distance: float, index: CandidateIndex | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`radius_descriptors` on checked inputs (``index``: a checked index to reuse, or None)."""
+    index = _index(inputs, geometry, search, index=index)
     dist = inputs.distances
-    i, j = index.run(_kernels.candidate_pairs)
+    i, j = index.candidate_lists()
     # the scores rank, with float32 rounding: a slack keeps every pair near the boundary for the exact check
     limit = (max_distance**2 if dist.norm == "l2" else max_distance) * (1 + 1e-4) + 1e-6
     near = dist.paired(i, j) <= limit
@@ -164,7 +204,7 @@ def _keep(ratio_values, mutual_values, ratio, mutual):
 
 
 def nearest(inputs: MatchInputs, geometry: TwoViewGeometry, search: SearchConfig, rule: AcceptRule, rng=0,
-            bucket_size: int = 64, prefilter: bool = False):
+            bucket_size: int = 64, prefilter: bool = False, index: CandidateIndex | None = None):
     """Every query's nearest candidate with its ratio and mutual flag: ``(i, j, ratio, mutual, counts)``.
 
     With ``prefilter``, the padding references are scored only for the pairs that pass ``rule`` without
@@ -173,7 +213,7 @@ def nearest(inputs: MatchInputs, geometry: TwoViewGeometry, search: SearchConfig
     """
     dist = inputs.distances
     p1, p2 = inputs.points1, inputs.points2
-    index = CandidateIndex.build(geometry, p1, p2, _guided_search(search), bucket_size)
+    index = _index(inputs, geometry, search, bucket_size, index)
     res = _scan(index, dist, 2)
     i = np.flatnonzero(res.indices[:, 0] >= 0)
     j = res.indices[i, 0]
@@ -199,9 +239,9 @@ def nearest(inputs: MatchInputs, geometry: TwoViewGeometry, search: SearchConfig
 
 
 def match(inputs: MatchInputs, geometry: TwoViewGeometry, search: SearchConfig, rule: AcceptRule, rng=0,
-          bucket_size: int = 64) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`match_descriptors` on checked inputs."""
-    i, j, r, mu, _ = nearest(inputs, geometry, search, rule, rng, bucket_size, prefilter=True)
+          bucket_size: int = 64, index: CandidateIndex | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`match_descriptors` on checked inputs (``index``: a checked index to reuse, or None)."""
+    i, j, r, mu, _ = nearest(inputs, geometry, search, rule, rng, bucket_size, prefilter=True, index=index)
     keep = _keep(r, mu, rule.ratio, rule.mutual or rule.cross_check)
     i, j = i[keep], j[keep]
     return np.column_stack([i, j]).astype(np.intp), inputs.distances.exact(i, j)
@@ -209,7 +249,7 @@ def match(inputs: MatchInputs, geometry: TwoViewGeometry, search: SearchConfig, 
 
 # -- the doors ---------------------------------------------------------------------------------
 def knn_descriptors(descriptors1, descriptors2, points1, points2, geometry, *, k=2, norm="l2",
-                    search: SearchConfig | None = None, **options) -> Neighbors:
+                    search: SearchConfig | None = None, index: CandidateIndex | None = None, **options) -> Neighbors:
     """The ``k`` nearest candidates of each query on its segment (or line).
 
     Parameters
@@ -229,6 +269,13 @@ def knn_descriptors(descriptors1, descriptors2, points1, points2, geometry, *, k
         fields may also be given as keywords. A geometry with a covariance
         (:meth:`~episeg_cv.TwoViewGeometry.with_covariance`) is searched in
         per-query bands, ``tol`` then being the keypoint noise.
+    index : CandidateIndex, optional
+        An index already built for these points, this geometry and this
+        search (``CandidateIndex(geometry, points1, points2, search=search)``),
+        to reuse across calls on the same pair (``knn_descriptors`` then
+        ``match_descriptors``, ...): it skips the segments and the index
+        build. Checked against the call; ``ValueError`` if it does not fit.
+        Only with a numeric ``tol`` and a geometry without covariance.
 
     Returns
     -------
@@ -258,17 +305,21 @@ def knn_descriptors(descriptors1, descriptors2, points1, points2, geometry, *, k
     search, _ = resolve(search, None, options, takes_rule=False)
     inputs = MatchInputs.check(descriptors1, descriptors2, points1, points2, norm)
     k = as_positive_int(k, "k")
-    return auto.knn(inputs, as_geometry(geometry), search, k)
+    geometry = as_geometry(geometry)
+    return auto.knn(inputs, geometry, search, k, index=check_index(index, inputs, geometry, search))
 
 
 def radius_descriptors(descriptors1, descriptors2, points1, points2, geometry, *, max_distance, norm="l2",
-                       search: SearchConfig | None = None, **options) -> tuple[np.ndarray, np.ndarray]:
+                       search: SearchConfig | None = None, index: CandidateIndex | None = None,
+                       **options) -> tuple[np.ndarray, np.ndarray]:
     """All candidates within ``max_distance`` (descriptor units): ``(pairs (K, 2), distances (K,))``,
     sorted by query, then by distance. Other parameters as in :func:`knn_descriptors`."""
     from . import auto
     search, _ = resolve(search, None, options, takes_rule=False)
     inputs = MatchInputs.check(descriptors1, descriptors2, points1, points2, norm)
-    return auto.radius(inputs, as_geometry(geometry), search, as_nonnegative(max_distance, "maxDistance"))
+    geometry = as_geometry(geometry)
+    return auto.radius(inputs, geometry, search, as_nonnegative(max_distance, "maxDistance"),
+                       index=check_index(index, inputs, geometry, search))
 
 
 @dataclass(frozen=True)
@@ -321,7 +372,7 @@ class GuidedMatches:
 
 def guided_matches(descriptors1, descriptors2, points1, points2, geometry, *, norm="l2",
                    search: SearchConfig | None = None, rule: AcceptRule | None = None, rng=0, bucket_size=64,
-                   **options) -> GuidedMatches:
+                   index: CandidateIndex | None = None, **options) -> GuidedMatches:
     """Nearest candidate of every query on its segment (or line), with its ratio and mutual flags.
 
     The thresholds of :func:`match_descriptors` are then a cheap filter
@@ -331,15 +382,17 @@ def guided_matches(descriptors1, descriptors2, points1, points2, geometry, *, no
     from . import auto
     search, rule = resolve(search, rule, options)
     inputs = MatchInputs.check(descriptors1, descriptors2, points1, points2, norm)
-    (i, j, ratio, mutual, counts), plan = auto.nearest(inputs, as_geometry(geometry), search, rule, rng,
-                                                       as_positive_int(bucket_size, "bucket_size"))
+    geometry = as_geometry(geometry)
+    (i, j, ratio, mutual, counts), plan = auto.nearest(inputs, geometry, search, rule, rng,
+                                                       as_positive_int(bucket_size, "bucket_size"),
+                                                       index=check_index(index, inputs, geometry, search))
     return GuidedMatches(np.column_stack([i, j]).astype(np.intp), inputs.distances.exact(i, j), ratio, mutual, counts,
                          rule, plan.estimate)
 
 
 def match_descriptors(descriptors1, descriptors2, points1, points2, geometry, *, norm="l2",
                       search: SearchConfig | None = None, rule: AcceptRule | None = None, rng=0, bucket_size=64,
-                      **options) -> tuple[np.ndarray, np.ndarray]:
+                      index: CandidateIndex | None = None, **options) -> tuple[np.ndarray, np.ndarray]:
     """Match descriptors, comparing each query only with the keypoints on its epipolar segment.
 
     Parameters
@@ -353,6 +406,8 @@ def match_descriptors(descriptors1, descriptors2, points1, points2, geometry, *,
         Seed for the padding draw (fixed by default, so results repeat).
     bucket_size : int, optional
         Queries per pencil bucket of the candidate index (speed only; results do not change).
+    index : CandidateIndex, optional
+        An index to reuse, as in :func:`knn_descriptors` (then ``bucket_size`` is the index's).
     **options
         Fields of :class:`~episeg_cv.SearchConfig` or :class:`~episeg_cv.AcceptRule`
         (``tol=4``, ``ratio=0.8``, ...); they override ``search`` and ``rule``.
@@ -380,4 +435,6 @@ def match_descriptors(descriptors1, descriptors2, points1, points2, geometry, *,
     from . import auto
     search, rule = resolve(search, rule, options)
     inputs = MatchInputs.check(descriptors1, descriptors2, points1, points2, norm)
-    return auto.match(inputs, as_geometry(geometry), search, rule, rng, as_positive_int(bucket_size, "bucket_size"))
+    geometry = as_geometry(geometry)
+    return auto.match(inputs, geometry, search, rule, rng, as_positive_int(bucket_size, "bucket_size"),
+                      index=check_index(index, inputs, geometry, search))

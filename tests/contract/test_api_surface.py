@@ -24,6 +24,8 @@ CONTRACT_NAMES = [
     "SearchConfig",
     "AcceptRule",
     "Neighbors",
+    "set_num_threads",
+    "get_num_threads",
     "__version__",
 ]
 

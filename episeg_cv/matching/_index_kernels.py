@@ -1,0 +1,375 @@
+"""Compiled loops that build :class:`~episeg_cv.matching.candidates.CandidateIndex` (numba).
+
+Each kernel that runs on several threads has a serial twin (``name`` and ``name_parallel``), chosen by
+:func:`episeg_cv.threads.run`. Every item (query, keypoint, bucket) is computed by the same code from
+the same inputs whatever the thread, and the order of the outputs does not depend on the threads, so
+the index is the same for every thread count. Arithmetic is float64, without fast-math.
+
+Conventions: ``P, Q (N1, 2)`` are the ends of each query's segment (or clipped line), ``line (N1, 3)``
+its unit epipolar line (zero where undefined), ``y (N2, 2)`` the keypoints of image 2. Pencil angles
+``phi`` in ``[0, pi)`` are taken in normalised coordinates ``(x - c) / s`` of image 2, in the basis
+``(u, v)`` of the lines through the unit homogeneous epipole ``e``. ``edges (n_b + 1,)`` bound the
+pencil buckets; ``span`` scales the position ``rho`` along a bucket's direction into a key
+``bucket + rho / span + 1/2`` that sorts by bucket, then by ``rho``.
+"""
+
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+from numba import prange
+
+__all__ = ["query_frames", "query_frames_parallel", "query_phi", "query_phi_parallel", "bucket_frames",
+           "bucket_frames_parallel", "pencil_intervals", "pencil_intervals_parallel", "spread_keys",
+           "spread_keys_parallel", "slice_bounds", "slice_bounds_parallel"]
+
+
+@nb.njit(inline="always")
+def _blocks(n, nblk, c):
+    """Items ``[lo, hi)`` of block ``c`` of ``nblk``."""
+    return c * n // nblk, (c + 1) * n // nblk
+
+
+# -- per query -------------------------------------------------------------------------------
+@nb.njit(cache=True, nogil=True)
+def _frames(q0, q1, P, Q, line, is_line, geo):
+    for q in range(q0, q1):
+        D0 = Q[q, 0] - P[q, 0]
+        D1 = Q[q, 1] - P[q, 1]
+        length = np.hypot(D0, D1)
+        d0, d1 = (D0 / length, D1 / length) if length > 0 else (1.0, 0.0)
+        if is_line:
+            n0, n1, off = line[q, 0], line[q, 1], -line[q, 2]
+        else:
+            n0, n1 = -d1, d0
+            off = n0 * P[q, 0] + n1 * P[q, 1]
+        geo[q, 0], geo[q, 1], geo[q, 2] = n0, n1, off
+        geo[q, 3], geo[q, 4] = d0, d1
+        geo[q, 5] = d0 * P[q, 0] + d1 * P[q, 1] + 0.5 * length
+        geo[q, 6] = 0.5 * length
+
+
+@nb.njit(cache=True, nogil=True)
+def query_frames(P, Q, line, is_line):
+    """``geo (N, 7)`` per query (see :mod:`._kernels`): the unit normal ``(n0, n1)`` and offset of the
+    segment's line (the epipolar line's with ``is_line``), the unit direction, the middle's position
+    along it and the half-length. A zero-length segment (a point) gets the direction ``(1, 0)``."""
+    geo = np.empty((P.shape[0], 7))
+    _frames(0, P.shape[0], P, Q, line, is_line, geo)
+    return geo
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def query_frames_parallel(P, Q, line, is_line, blocks):
+    """:func:`query_frames` on threads."""
+    n = P.shape[0]
+    geo = np.empty((n, 7))
+    nblk = blocks
+    for c in prange(nblk):
+        q0, q1 = _blocks(n, nblk, c)
+        _frames(q0, q1, P, Q, line, is_line, geo)
+    return geo
+
+
+@nb.njit(cache=True, nogil=True)
+def _phi(r0, r1, line, q_ok, s, c0, c1, u, v, out):
+    for r in range(r0, r1):
+        q = q_ok[r]
+        a, b, c = line[q, 0], line[q, 1], line[q, 2]
+        if a == 0.0 and b == 0.0:  # undefined line: the point is the epipole itself
+            out[r] = 0.0
+            continue
+        l0, l1, l2 = a * s, b * s, a * c0 + b * c1 + c
+        out[r] = np.arctan2(l0 * v[0] + l1 * v[1] + l2 * v[2], l0 * u[0] + l1 * u[1] + l2 * u[2]) % np.pi
+
+
+@nb.njit(cache=True, nogil=True)
+def query_phi(line, q_ok, s, c0, c1, u, v):
+    """``(len(q_ok),)`` pencil angle of the epipolar line of each query ``q_ok[r]`` (0 where undefined)."""
+    out = np.empty(q_ok.shape[0])
+    _phi(0, q_ok.shape[0], line, q_ok, s, c0, c1, u, v, out)
+    return out
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def query_phi_parallel(line, q_ok, s, c0, c1, u, v, blocks):
+    """:func:`query_phi` on threads."""
+    n = q_ok.shape[0]
+    out = np.empty(n)
+    nblk = blocks
+    for c in prange(nblk):
+        r0, r1 = _blocks(n, nblk, c)
+        _phi(r0, r1, line, q_ok, s, c0, c1, u, v, out)
+    return out
+
+
+# -- per bucket of queries -------------------------------------------------------------------------
+@nb.njit(cache=True, nogil=True)
+def _bucket(b, q_sorted, bstart, line, P, Q, pencil, c0, c1, span, tol, directions, klo, khi, hull):
+    if pencil:  # the mean direction of the bucket's lines, averaged as doubled angles
+        sy = 0.0  # (the direction (-b, a) of a unit line (a, b, c), doubled, is (b^2 - a^2, -2ab))
+        sx = 0.0
+        for r in range(bstart[b], bstart[b + 1]):
+            q = q_sorted[r]
+            a, bb = line[q, 0], line[q, 1]
+            sy += -2 * a * bb
+            sx += bb * bb - a * a
+        half = 0.5 * np.arctan2(sy, sx)
+        dx, dy = np.cos(half), np.sin(half)
+    else:  # pure rotation: one bucket, rho along x
+        dx, dy = 1.0, 0.0
+    directions[b, 0], directions[b, 1] = dx, dy
+    lo_b, hi_b = np.inf, -np.inf
+    for r in range(bstart[b], bstart[b + 1]):
+        q = q_sorted[r]
+        r1 = (P[q, 0] - c0) * dx + (P[q, 1] - c1) * dy
+        r2 = (Q[q, 0] - c0) * dx + (Q[q, 1] - c1) * dy
+        klo[r] = b + ((min(r1, r2) - tol) / span + 0.5)
+        khi[r] = b + ((max(r1, r2) + tol) / span + 0.5)
+        lo_b = min(lo_b, klo[r])
+        hi_b = max(hi_b, khi[r])
+    hull[b, 0], hull[b, 1] = lo_b, hi_b
+
+
+@nb.njit(cache=True, nogil=True)
+def bucket_frames(q_sorted, bstart, line, P, Q, pencil, c0, c1, span, tol):
+    """Per bucket (queries ``q_sorted[bstart[b]:bstart[b + 1]]``): its direction ``(n_b, 2)``; per query
+    row, the key interval ``[klo, khi]`` of its slice (its segment's ``rho`` interval grown by ``tol``);
+    per bucket, the ``hull (n_b, 2)`` of those intervals (no slice of the bucket reaches past it)."""
+    n_b = bstart.shape[0] - 1
+    directions, hull = np.empty((n_b, 2)), np.empty((n_b, 2))
+    klo, khi = np.empty(q_sorted.shape[0]), np.empty(q_sorted.shape[0])
+    for b in range(n_b):
+        _bucket(b, q_sorted, bstart, line, P, Q, pencil, c0, c1, span, tol, directions, klo, khi, hull)
+    return directions, klo, khi, hull
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def bucket_frames_parallel(q_sorted, bstart, line, P, Q, pencil, c0, c1, span, tol, blocks):
+    """:func:`bucket_frames` on threads."""
+    n_b = bstart.shape[0] - 1
+    directions, hull = np.empty((n_b, 2)), np.empty((n_b, 2))
+    klo, khi = np.empty(q_sorted.shape[0]), np.empty(q_sorted.shape[0])
+    for b in prange(n_b):
+        _bucket(b, q_sorted, bstart, line, P, Q, pencil, c0, c1, span, tol, directions, klo, khi, hull)
+    return directions, klo, khi, hull
+
+
+# -- per keypoint -------------------------------------------------------------------------------------
+@nb.njit(inline="always")
+def _pencil_angle(e, u, v, c0, c1, s, x0, x1):
+    """Angle in ``[0, pi)`` of the line through the epipole ``e`` and pixel ``(x0, x1)``, in the pencil
+    basis ``(u, v)``, and the first two coefficients of that line (normalised coordinates)."""
+    y0 = (x0 - c0) / s
+    y1 = (x1 - c1) / s
+    l0 = e[1] - e[2] * y1
+    l1 = e[2] * y0 - e[0]
+    l2 = e[0] * y1 - e[1] * y0
+    a = l0 * u[0] + l1 * u[1] + l2 * u[2]
+    b = l0 * v[0] + l1 * v[1] + l2 * v[2]
+    return np.arctan2(b, a) % np.pi, l0, l1
+
+
+@nb.njit(cache=True, nogil=True)
+def _intervals(k0, k1, e, u, v, c0, c1, s, tol, y, lo, width):
+    for k in range(k0, k1):
+        phi, l0, l1 = _pencil_angle(e, u, v, c0, c1, s, y[k, 0], y[k, 1])
+        h = max(np.hypot(l0, l1), 1e-300)
+        # tol / r (r infinite for an epipole at infinity)
+        r = np.hypot(e[0] - (y[k, 0] - c0) / s * e[2], e[1] - (y[k, 1] - c1) / s * e[2])
+        ratio = (tol / s) * abs(e[2]) / r if r > 0 else np.inf
+        if ratio >= 1 - 1e-9:  # y is within tol of the epipole: every line
+            lo[k] = 0.0
+            width[k] = np.pi
+            continue
+        tau = tol / np.sqrt(max(1.0 - ratio * ratio, 1e-18)) * (1 + 1e-9) + 1e-9
+        a, _, _ = _pencil_angle(e, u, v, c0, c1, s, y[k, 0] - tau * l0 / h, y[k, 1] - tau * l1 / h)
+        b, _, _ = _pencil_angle(e, u, v, c0, c1, s, y[k, 0] + tau * l0 / h, y[k, 1] + tau * l1 / h)
+        w = (b - a) % np.pi
+        if (phi - a) % np.pi > w:  # the arc from a to b must contain phi; otherwise it is the other one
+            lo[k] = b
+            width[k] = np.pi - w
+        else:
+            lo[k] = a
+            width[k] = w
+
+
+@nb.njit(cache=True, nogil=True)
+def pencil_intervals(e, u, v, c0, c1, s, tol, y):
+    """For each pixel ``y (N, 2)``: the interval ``[lo, lo + width]`` (mod pi) of pencil angles of the
+    lines through the epipole that pass within ``tol`` of it (``width = pi``: all of them).
+
+    The lines through the epipole at distance ``tol`` from ``y`` touch the circle of radius ``tol``
+    around it; they are found as the lines through the points ``y +- tau n``, with ``n`` the normal
+    of the line through ``y`` and ``tau = tol / sqrt(1 - (tol / r)^2)``, ``r`` the distance from ``y``
+    to the epipole. Both are grown slightly, for rounding.
+    """
+    lo, width = np.empty(y.shape[0]), np.empty(y.shape[0])
+    _intervals(0, y.shape[0], e, u, v, c0, c1, s, tol, y, lo, width)
+    return lo, width
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def pencil_intervals_parallel(e, u, v, c0, c1, s, tol, y, blocks):
+    """:func:`pencil_intervals` on threads."""
+    n = y.shape[0]
+    lo, width = np.empty(n), np.empty(n)
+    nblk = blocks
+    for c in prange(nblk):
+        k0, k1 = _blocks(n, nblk, c)
+        _intervals(k0, k1, e, u, v, c0, c1, s, tol, y, lo, width)
+    return lo, width
+
+
+@nb.njit(inline="always")
+def _bucket_range(lo, width, edges):
+    """Buckets ``k0..k1`` that the angle interval ``[lo, lo + width]`` overlaps and, where it passes pi,
+    ``0..w1`` (up to, not into, those already covered; ``w1 = -1`` without)."""
+    n_b = edges.shape[0] - 1
+    h = min(lo + width, lo + np.pi)
+    k0 = min(max(np.searchsorted(edges, lo, side="right") - 1, 0), n_b - 1)
+    k1 = min(max(np.searchsorted(edges, min(h, np.pi), side="right") - 1, 0), n_b - 1)
+    w1 = -1
+    if h > np.pi:
+        w1 = min(min(max(np.searchsorted(edges, h - np.pi, side="right") - 1, 0), n_b - 1), k0 - 1)
+    return k0, k1, w1
+
+
+@nb.njit(inline="always")
+def _entry(k, b, y, directions, c0, c1, span, hull, bucket, key, m, count):
+    """Entry ``m`` (keypoint ``k`` in bucket ``b``) if its key lies in the bucket's hull: the next ``m``."""
+    kb = b + (((y[k, 0] - c0) * directions[b, 0] + (y[k, 1] - c1) * directions[b, 1]) / span + 0.5)
+    if kb >= hull[b, 0] and kb <= hull[b, 1]:
+        if not count:
+            bucket[m], key[m] = b, kb
+        return m + 1
+    return m
+
+
+@nb.njit(cache=True, nogil=True)
+def _spread(k0, k1, lo, width, edges, y, directions, c0, c1, span, hull, first, bucket, key, count):
+    """Keypoints ``k0:k1``: with ``count``, the number of their (bucket, key) entries into ``first[k]``;
+    else those entries from position ``first[k]``. An entry is kept only inside its bucket's hull."""
+    for k in range(k0, k1):
+        b0, b1, w1 = _bucket_range(lo[k], width[k], edges)
+        m = 0 if count else first[k]
+        for b in range(b0, b1 + 1):
+            m = _entry(k, b, y, directions, c0, c1, span, hull, bucket, key, m, count)
+        for b in range(0, w1 + 1):
+            m = _entry(k, b, y, directions, c0, c1, span, hull, bucket, key, m, count)
+        if count:
+            first[k] = m
+
+
+@nb.njit(cache=True, nogil=True)
+def _prefix(first):
+    """In place: counts ``first[0:n]`` -> starts ``first[0:n + 1]`` (``first[n]``: the total)."""
+    acc = 0
+    for k in range(first.shape[0]):
+        c = first[k]
+        first[k] = acc
+        acc += c
+    return acc
+
+
+@nb.njit(cache=True, nogil=True)
+def _by_bucket(first, bucket, key, n_b):
+    """Counting sort of the entries (keypoint-major) by bucket, stable: ``(t_b, key_b, bstart)``."""
+    total = bucket.shape[0]
+    bstart = np.zeros(n_b + 1, dtype=np.int64)
+    for m in range(total):
+        bstart[bucket[m] + 1] += 1
+    for b in range(n_b):
+        bstart[b + 1] += bstart[b]
+    pos = bstart[:-1].copy()
+    t_b = np.empty(total, dtype=np.int64)
+    key_b = np.empty(total)
+    n = first.shape[0] - 1
+    for k in range(n):
+        for m in range(first[k], first[k + 1]):
+            p = pos[bucket[m]]
+            t_b[p], key_b[p] = k, key[m]
+            pos[bucket[m]] = p + 1
+    return t_b, key_b, bstart
+
+
+@nb.njit(cache=True, nogil=True)
+def _sort_bucket(b, bstart, t_b, key_b, t_sorted, key_sorted):
+    a, z = bstart[b], bstart[b + 1]
+    o = np.argsort(key_b[a:z], kind="mergesort")  # stable: equal keys by keypoint index
+    for m in range(z - a):
+        t_sorted[a + m] = t_b[a + o[m]]
+        key_sorted[a + m] = key_b[a + o[m]]
+
+
+@nb.njit(cache=True, nogil=True)
+def spread_keys(lo, width, edges, y, directions, c0, c1, span, hull):
+    """Each keypoint into every bucket its angle interval ``[lo, lo + width]`` overlaps (``lo + width``
+    may pass pi: the rest continues at 0), with its key in that bucket; sorted by key:
+    ``(t_sorted, key_sorted, bstart)``, bucket ``b`` being ``bstart[b]:bstart[b + 1]``."""
+    n = lo.shape[0]
+    first = np.empty(n + 1, dtype=np.int64)
+    no_i, no_f = np.empty(0, np.int64), np.empty(0)
+    _spread(0, n, lo, width, edges, y, directions, c0, c1, span, hull, first, no_i, no_f, True)
+    total = _prefix(first[:n])
+    first[n] = total
+    bucket, key = np.empty(total, np.int64), np.empty(total)
+    _spread(0, n, lo, width, edges, y, directions, c0, c1, span, hull, first, bucket, key, False)
+    t_b, key_b, bstart = _by_bucket(first, bucket, key, edges.shape[0] - 1)
+    t_sorted, key_sorted = np.empty(total, np.int64), np.empty(total)
+    for b in range(edges.shape[0] - 1):
+        _sort_bucket(b, bstart, t_b, key_b, t_sorted, key_sorted)
+    return t_sorted, key_sorted, bstart
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def spread_keys_parallel(lo, width, edges, y, directions, c0, c1, span, hull, blocks):
+    """:func:`spread_keys` on threads (the counting sort between the passes is serial)."""
+    n = lo.shape[0]
+    nblk = blocks
+    first = np.empty(n + 1, dtype=np.int64)
+    no_i, no_f = np.empty(0, np.int64), np.empty(0)
+    for c in prange(nblk):
+        k0, k1 = _blocks(n, nblk, c)
+        _spread(k0, k1, lo, width, edges, y, directions, c0, c1, span, hull, first, no_i, no_f, True)
+    total = _prefix(first[:n])
+    first[n] = total
+    bucket, key = np.empty(total, np.int64), np.empty(total)
+    for c in prange(nblk):
+        k0, k1 = _blocks(n, nblk, c)
+        _spread(k0, k1, lo, width, edges, y, directions, c0, c1, span, hull, first, bucket, key, False)
+    t_b, key_b, bstart = _by_bucket(first, bucket, key, edges.shape[0] - 1)
+    t_sorted, key_sorted = np.empty(total, np.int64), np.empty(total)
+    for b in prange(edges.shape[0] - 1):
+        _sort_bucket(b, bstart, t_b, key_b, t_sorted, key_sorted)
+    return t_sorted, key_sorted, bstart
+
+
+# -- per query row -----------------------------------------------------------------------------------
+@nb.njit(cache=True, nogil=True)
+def _slices(r0, r1, key_t, bstart, qb, klo, khi, start, stop):
+    for r in range(r0, r1):
+        a, z = bstart[qb[r]], bstart[qb[r] + 1]
+        start[r] = a + np.searchsorted(key_t[a:z], klo[r], side="left")
+        stop[r] = a + np.searchsorted(key_t[a:z], khi[r], side="right")
+
+
+@nb.njit(cache=True, nogil=True)
+def slice_bounds(key_t, bstart, qb, klo, khi):
+    """``(start, stop)`` per query row ``r``: the keys of its bucket ``qb[r]`` in ``[klo[r], khi[r]]``."""
+    n = qb.shape[0]
+    start, stop = np.empty(n, np.int64), np.empty(n, np.int64)
+    _slices(0, n, key_t, bstart, qb, klo, khi, start, stop)
+    return start, stop
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def slice_bounds_parallel(key_t, bstart, qb, klo, khi, blocks):
+    """:func:`slice_bounds` on threads."""
+    n = qb.shape[0]
+    start, stop = np.empty(n, np.int64), np.empty(n, np.int64)
+    nblk = blocks
+    for c in prange(nblk):
+        r0, r1 = _blocks(n, nblk, c)
+        _slices(r0, r1, key_t, bstart, qb, klo, khi, start, stop)
+    return start, stop

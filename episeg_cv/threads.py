@@ -1,0 +1,188 @@
+"""How many threads the compiled kernels use: :func:`set_num_threads`, :func:`get_num_threads`.
+
+Like ``cv2.setNumThreads``: one setting for the whole process, every core by
+default. It governs the library's numba kernels (the segments, the candidate
+index, the candidate scan, the padding of the acceptance rule) and the BLAS
+product that scores the padding references (limited through threadpoolctl for
+the length of that product only).
+
+Results do not depend on the thread count: every parallel loop either
+computes items independently, or keeps per-thread minima under a total order
+and merges them (see :mod:`episeg_cv.matching._kernels`).
+
+Numba's own ``numba.set_num_threads`` is *per calling Python thread*: a
+thread pool started by the user would not see a value set in the main thread.
+So the setting here is kept by the library and applied, around each parallel
+kernel, in whichever Python thread calls it (and numba's value restored
+after). Until :func:`set_num_threads` is called, the library follows numba's
+value of the calling thread (``numba.get_num_threads()``, all cores unless
+changed).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import operator
+import threading
+
+import numba
+import numpy as np
+
+__all__ = ["set_num_threads", "get_num_threads", "use_parallel", "call_parallel", "run", "blas_limit",
+           "Scratch", "blocks", "MIN_PARALLEL_ITEMS", "BLOCKS_PER_THREAD"]
+
+#: Below this many items (rows, points, keypoints) a kernel runs its serial variant: forking threads
+#: costs more than it saves (a few microseconds on an idle machine, milliseconds on an oversubscribed one).
+MIN_PARALLEL_ITEMS = 2048
+#: Work blocks per thread in a parallel kernel (uneven blocks even out).
+BLOCKS_PER_THREAD = 8
+
+_requested: int | None = None
+_layer: str | None = None
+_launch_lock = threading.Lock()
+_blas = None
+_blas_lock = threading.Lock()
+
+
+def set_num_threads(n: int | None) -> None:
+    """Use ``n`` threads in the library's compiled kernels (``None``: the default, every core).
+
+    Parameters
+    ----------
+    n : int >= 1 or None
+        Threads per call. Values above the number numba started with
+        (``numba.config.NUMBA_NUM_THREADS``, the number of cores unless the
+        ``NUMBA_NUM_THREADS`` environment variable says otherwise) are clipped
+        to it. ``None`` restores the default: numba's setting of the calling
+        thread, every core unless changed with ``numba.set_num_threads``.
+
+    Notes
+    -----
+    Process-wide, like ``cv2.setNumThreads``: it holds for calls from every
+    Python thread. Results are identical for every thread count. Matching
+    from several Python threads at once (one image pair each) works; then
+    ``set_num_threads(1)`` avoids running more threads than cores.
+
+    Examples
+    --------
+    >>> import episeg_cv
+    >>> episeg_cv.set_num_threads(1)
+    >>> episeg_cv.get_num_threads()
+    1
+    >>> episeg_cv.set_num_threads(None)   # back to every core
+    """
+    global _requested
+    if n is None:
+        _requested = None
+        return
+    if isinstance(n, bool) or not hasattr(n, "__index__"):
+        raise TypeError(f"n must be an int >= 1 or None, got {type(n).__name__}")
+    n = operator.index(n)
+    if n < 1:
+        raise ValueError(f"n must be an int >= 1 or None, got {n}")
+    _requested = min(n, numba.config.NUMBA_NUM_THREADS)
+
+
+def get_num_threads() -> int:
+    """The number of threads a call made now, from this Python thread, would use (>= 1).
+
+    Examples
+    --------
+    >>> import episeg_cv
+    >>> episeg_cv.get_num_threads() >= 1
+    True
+    """
+    return numba.get_num_threads() if _requested is None else _requested
+
+
+def use_parallel(items: int) -> bool:
+    """Whether a kernel over ``items`` items should run its parallel variant now."""
+    return items >= MIN_PARALLEL_ITEMS and get_num_threads() > 1
+
+
+def call_parallel(kernel, *args):
+    """``kernel(*args)`` with numba's thread count of the calling Python thread set to
+    :func:`get_num_threads` (and restored after).
+
+    Under numba's ``workqueue`` threading layer (used when neither TBB nor OpenMP is available),
+    two parallel launches at once from two Python threads abort the process; there the launches are
+    serialised by a lock. The ``omp`` and ``tbb`` layers take concurrent launches.
+    """
+    n = get_num_threads()
+    before = numba.get_num_threads()
+    with (_launch_lock if _serialise_launches() else contextlib.nullcontext()):
+        if before == n:
+            return kernel(*args)
+        numba.set_num_threads(n)
+        try:
+            return kernel(*args)
+        finally:
+            numba.set_num_threads(before)
+
+
+def _serialise_launches() -> bool:
+    global _layer
+    if _layer is None:
+        try:
+            _layer = numba.threading_layer()
+        except ValueError:  # no parallel launch yet: the layer is not chosen
+            return True
+    return _layer == "workqueue"
+
+
+def blocks() -> int:
+    """Work blocks of a parallel kernel: a few per thread, so that uneven blocks even out."""
+    return BLOCKS_PER_THREAD * get_num_threads()
+
+
+def run(serial, parallel, items: int, *args):
+    """``parallel(*args, blocks())`` through :func:`call_parallel` when :func:`use_parallel` says so, else
+    ``serial(*args)`` (one thread, or fewer than :data:`MIN_PARALLEL_ITEMS` items). By convention the
+    parallel twin of a kernel takes the number of work blocks as its last argument."""
+    return call_parallel(parallel, *args, blocks()) if use_parallel(items) else serial(*args)
+
+
+class _NoLimit:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+
+def blas_limit():
+    """A context that limits BLAS to :func:`get_num_threads` threads while it is open (a no-op when BLAS
+    already uses no more). BLAS libraries keep one process-wide setting, so the limit also holds for
+    BLAS calls made by other Python threads meanwhile."""
+    global _blas
+    if _blas is None:
+        with _blas_lock:
+            if _blas is None:
+                from threadpoolctl import ThreadpoolController
+                _blas = ThreadpoolController().select(user_api="blas")
+    n = get_num_threads()
+    if not _blas.lib_controllers or all(c.num_threads <= n for c in _blas.lib_controllers):
+        return _NoLimit()
+    return _blas.limit(limits=n)
+
+
+class Scratch(threading.local):
+    """Work buffers kept from one call to the next, one set per Python thread.
+
+    A large fresh array costs page faults on first touch (at 50k keypoints, gathering the
+    descriptors into a fresh array took three times as long as into a reused one). Only for arrays
+    that do not outlive the call that asked for them: the next call overwrites them. Each buffer
+    keeps the size of the largest request so far.
+    """
+
+    def __init__(self):
+        self.buffers = {}
+
+    def get(self, name: str, shape: tuple, dtype) -> np.ndarray:
+        """An uninitialised C-contiguous ``shape`` array of ``dtype``, in the buffer ``name``."""
+        dtype = np.dtype(dtype)
+        need = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+        buf = self.buffers.get(name)
+        if buf is None or buf.nbytes < need:
+            buf = self.buffers[name] = np.empty(max(need, 64), dtype=np.uint8)
+        return buf[:need].view(dtype).reshape(shape)

@@ -1,0 +1,187 @@
+"""set_num_threads / get_num_threads, and results that are the same bits for every thread count.
+
+The parallel kernels keep per-thread minima under total orders and merge them; the serial twins run
+the same code on one thread. Every output of the array API is compared byte for byte between one
+and two threads, on several poses, both constraints, L2 and Hamming, with descriptors full of ties
+(small integers), and with the serial/parallel switch forced to the parallel kernels.
+"""
+
+import copy
+import threading
+
+import cv2
+import numba
+import numpy as np
+import pytest
+
+import episeg_cv
+from episeg_cv import (CandidateIndex, SearchConfig, TwoViewGeometry, guided_matches, knn_descriptors,
+                       match_descriptors, radius_descriptors, threads)
+from episeg_cv.matching import guided
+from episeg_cv.matching.guided import MatchInputs
+
+TWO = numba.config.NUMBA_NUM_THREADS >= 2
+needs_two = pytest.mark.skipif(not TWO, reason="numba has a single thread here")
+
+SIZE = (320, 240)
+K = np.array([[300.0, 0, 159.5], [0, 300.0, 119.5], [0, 0, 1]])
+
+
+def rot(v):
+    return cv2.Rodrigues(np.asarray(v, float).reshape(3, 1))[0]
+
+
+#: Poses: forward (epipole inside), lateral (epipole at infinity), converging, backward, pure rotation.
+POSES = {
+    "forward": (np.eye(3), [0.02, 0.01, -1.0]),
+    "lateral": (np.eye(3), [-1.0, 0.0, 0.0]),
+    "converging": (rot([0, 0.25, 0.02]), [-1.0, 0.05, 0.3]),
+    "backward": (rot([0.01, -0.02, 0]), [0.0, 0.05, 1.0]),
+    "rotation": (rot([0.02, 0.03, 0.01]), [0.0, 0.0, 0.0]),
+}
+
+
+def problem(pose, norm, n1=2500, n2=2700, seed=0):
+    R, t = POSES[pose]
+    g = TwoViewGeometry(K, K, R, t, image_size1=SIZE, image_size2=SIZE)
+    rng = np.random.default_rng(seed)
+    p1 = rng.uniform(-0.5, np.array(SIZE) - 0.5, (n1, 2))
+    p2 = rng.uniform(-0.5, np.array(SIZE) - 0.5, (n2, 2))
+    if norm == "hamming":  # 2 bytes: many equal distances
+        d1, d2 = (rng.integers(0, 256, (n, 2), dtype=np.uint8) for n in (n1, n2))
+    else:  # small integers: many equal scores
+        d1, d2 = (rng.integers(0, 3, (n, 6)).astype(np.float32) for n in (n1, n2))
+    return g, p1, p2, d1, d2
+
+
+@pytest.fixture
+def always_parallel(monkeypatch):
+    """Parallel kernels even for small inputs; the thread count restored after."""
+    monkeypatch.setattr(threads, "MIN_PARALLEL_ITEMS", 1)
+    threads.set_num_threads(None)  # (whatever an earlier test left)
+    before = numba.get_num_threads()
+    yield
+    threads.set_num_threads(None)
+    numba.set_num_threads(before)
+
+
+def outputs(g, p1, p2, d1, d2, norm, constraint):
+    """Every array the matcher returns for these inputs, as bytes."""
+    out = {}
+    for k in (1, 2, 3):
+        nb = knn_descriptors(d1, d2, p1, p2, g, k=k, norm=norm, constraint=constraint)
+        out[f"knn{k}"] = [nb.indices, nb.distances, nb.counts, nb.column_best]
+    out["match"] = list(match_descriptors(d1, d2, p1, p2, g, norm=norm, constraint=constraint))
+    out["cross_check"] = list(match_descriptors(d1, d2, p1, p2, g, norm=norm, constraint=constraint,
+                                                cross_check=True, ratio=0.9))
+    gm = guided_matches(d1, d2, p1, p2, g, norm=norm, constraint=constraint, pad=64)
+    out["guided"] = [gm.pairs, gm.distances, gm.ratio, gm.mutual, gm.candidates]
+    out["radius"] = list(radius_descriptors(d1, d2, p1, p2, g, norm=norm, constraint=constraint,
+                                            max_distance=2.0 if norm == "hamming" else 1.5))
+    out["pairs"] = [CandidateIndex(g, p1, p2, constraint=constraint).pairs()]
+    seg = g.segments(p1, margin=2.0)
+    out["segments"] = [seg.start, seg.end, seg.valid, seg.line, seg.infinity_point, seg.line_start, seg.line_end]
+    return {k: [(a.dtype.str, a.shape, a.tobytes()) for a in map(np.asarray, v)] for k, v in out.items()}
+
+
+@needs_two
+@pytest.mark.parametrize("pose", list(POSES))
+@pytest.mark.parametrize("norm", ["l2", "hamming"])
+@pytest.mark.parametrize("constraint", ["segment", "line"])
+def test_same_bits_for_one_and_two_threads(always_parallel, pose, norm, constraint):
+    g, p1, p2, d1, d2 = problem(pose, norm)
+    got = {}
+    for n in (1, 2):
+        numba.set_num_threads(n)
+        assert episeg_cv.get_num_threads() == n  # the default follows numba's setting of this thread
+        got[n] = outputs(g, p1, p2, d1, d2, norm, constraint)
+    assert sum(len(v[0][2]) for v in got[1].values()) > 0
+    for key in got[1]:
+        assert got[1][key] == got[2][key], key
+
+
+@needs_two
+def test_same_bits_through_set_num_threads_and_default_switch(always_parallel, monkeypatch):
+    g, p1, p2, d1, d2 = problem("converging", "l2", n1=3000, n2=3000, seed=1)
+    got = []
+    for n, min_items in ((1, 1), (2, 1), (2, 10**9)):  # one thread; two; two but below the switch (serial)
+        monkeypatch.setattr(threads, "MIN_PARALLEL_ITEMS", min_items)
+        episeg_cv.set_num_threads(n)
+        got.append(outputs(g, p1, p2, d1, d2, "l2", "segment"))
+    assert got[0] == got[1] == got[2]
+
+
+def test_scan_accumulates_over_groups_of_rows():
+    """Two indexes over disjoint groups of rows, scanned into the same arrays, give the whole scan."""
+    g, p1, p2, d1, d2 = problem("forward", "l2", n1=800, n2=900, seed=2)
+    inp = MatchInputs.check(d1, d2, p1, p2, "l2")
+    index = CandidateIndex.build(g, p1, p2, SearchConfig())
+    whole = guided._scan(index, inp.distances, 2)
+    rows = np.arange(len(index.q_sorted))
+    parts = []
+    for sel in (rows % 3 == 0, rows % 3 != 0):
+        part = copy.copy(index)
+        part.q_sorted, part.q_start, part.q_stop = index.q_sorted[sel], index.q_start[sel], index.q_stop[sel]
+        parts.append(part)
+    acc = guided._Scan.empty(len(p1), len(p2), 2)
+    for part in parts:
+        acc.add(part, inp.distances)
+    for a, b in zip((whole.indices, whole.scores, whole.counts, whole.column_best, whole.column_scores),
+                    (acc.indices, acc.scores, acc.counts, acc.column_best, acc.column_scores)):
+        np.testing.assert_array_equal(a, b)
+    assert whole.counts.sum() > 0
+
+
+def test_set_and_get():
+    try:
+        episeg_cv.set_num_threads(1)
+        assert episeg_cv.get_num_threads() == 1
+        episeg_cv.set_num_threads(10**6)  # clipped to what numba started with
+        assert episeg_cv.get_num_threads() == numba.config.NUMBA_NUM_THREADS
+        episeg_cv.set_num_threads(np.int64(1))
+        assert episeg_cv.get_num_threads() == 1
+    finally:
+        episeg_cv.set_num_threads(None)
+    assert episeg_cv.get_num_threads() == numba.get_num_threads()
+
+
+@pytest.mark.parametrize("bad, error", [(0, ValueError), (-1, ValueError), (1.5, TypeError), (True, TypeError),
+                                        ("2", TypeError)])
+def test_bad_counts_are_refused(bad, error):
+    with pytest.raises(error, match="n must be an int >= 1 or None"):
+        episeg_cv.set_num_threads(bad)
+
+
+def test_the_setting_holds_in_other_python_threads():
+    """numba's own setting is per Python thread; the library's is for the process, and restored after a call."""
+    seen = {}
+
+    def work():
+        seen["get"] = episeg_cv.get_num_threads()
+        seen["inside"] = threads.call_parallel(numba.get_num_threads)
+        seen["after"] = numba.get_num_threads()
+
+    try:
+        episeg_cv.set_num_threads(1)
+        t = threading.Thread(target=work)
+        t.start()
+        t.join()
+    finally:
+        episeg_cv.set_num_threads(None)
+    assert seen["get"] == 1 and seen["inside"] == 1
+    assert seen["after"] == numba.config.NUMBA_NUM_THREADS  # a new thread's numba default, untouched
+
+
+def test_scratch_buffers_are_per_thread_and_grow():
+    s = threads.Scratch()
+    a = s.get("x", (4, 3), np.float32)
+    assert a.shape == (4, 3) and a.dtype == np.float32 and a.flags.c_contiguous
+    b = s.get("x", (2, 2), np.int64)
+    assert np.shares_memory(a, b)  # the same buffer, reused
+    c = s.get("x", (100, 100), np.float64)
+    assert c.shape == (100, 100) and not np.shares_memory(a, c)
+    other = {}
+    t = threading.Thread(target=lambda: other.setdefault("buf", s.get("x", (4, 3), np.float32)))
+    t.start()
+    t.join()
+    assert not np.shares_memory(other["buf"], c)
