@@ -146,7 +146,8 @@ def as_image_size(size, name: str) -> tuple[int, int]:
         if isinstance(v, (bool, np.bool_)) or not isinstance(v, numbers.Real):
             raise TypeError(f"{name} must hold two numbers (width, height), got {shown}")
         if not np.isfinite(v) or v != int(v) or v <= 0 or v > MAX_IMAGE_SIDE:
-            raise ValueError(f"{name} must be two integers in [1, {MAX_IMAGE_SIDE}] (width, height), got {shown}")
+            raise ValueError(f"{name} must be two positive integers (width, height), at most {MAX_IMAGE_SIDE}, "
+                             f"got {shown}")
         out.append(int(v))
     return out[0], out[1]
 

@@ -9,7 +9,8 @@ import numpy as np
 from .._validation import as_depth_range
 
 __all__ = ["Formatter", "positive_int", "nonneg_float", "tol_arg", "depth", "ratio_arg", "parse_point",
-           "depth_range_arg", "add_verbosity"]
+           "depth_range_arg", "add_verbosity", "bounded_int", "max_features_arg", "seed_arg", "image_file_arg",
+           "not_an_input"]
 
 
 class Formatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
@@ -37,6 +38,35 @@ def positive_int(text):
     if v <= 0:
         raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
     return v
+
+
+def bounded_int(lo: int, hi: int):
+    """An argparse type: an integer in ``[lo, hi]`` (the option's name is added by argparse)."""
+    def parse(text):
+        try:
+            v = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer in [{lo}, {hi}], got {text!r}") from None
+        if not lo <= v <= hi:
+            raise argparse.ArgumentTypeError(f"expected an integer in [{lo}, {hi}], got {text!r}")
+        return v
+    parse.__name__ = f"integer in [{lo}, {hi}]"
+    return parse
+
+
+#: ``--max-features``: at most OpenCV's int.
+max_features_arg = bounded_int(1, 2**31 - 1)
+#: A seed for numpy's generator.
+seed_arg = bounded_int(0, 2**63 - 1)
+
+
+def image_file_arg(text):
+    """A figure path with an extension OpenCV can write."""
+    import cv2
+
+    if not cv2.haveImageWriter(text):
+        raise argparse.ArgumentTypeError(f"OpenCV cannot write the extension of {text!r} (use .png, .jpg, .tif, ...)")
+    return text
 
 
 def nonneg_float(text):
@@ -104,3 +134,16 @@ def add_verbosity(parser: argparse.ArgumentParser) -> None:
     g.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS, help="print nothing but errors")
     g.add_argument("-v", "--verbose", action="store_true", default=argparse.SUPPRESS,
                    help="more detail on stderr (settings, repairs of rounded calibrations, timings)")
+
+
+def not_an_input(output, inputs, option: str) -> None:
+    """Refuse (``UserError``-like ``ValueError``) an output path that is one of the input files."""
+    from pathlib import Path
+
+    if output is None:
+        return
+    out = Path(output)
+    for p in inputs:
+        if p is not None and out.exists() and Path(p).exists() and out.resolve() == Path(p).resolve():
+            raise ValueError(f"{option} {str(output)!r} is an input file of this command; writing it would replace it: "
+                             "give another path")

@@ -8,7 +8,7 @@ import time
 
 from ..features import PRESETS
 from ..matching import AcceptRule, SearchConfig
-from .args import Formatter, depth, nonneg_float, positive_int, ratio_arg
+from .args import Formatter, max_features_arg, depth, nonneg_float, positive_int, ratio_arg
 from .console import PROG, Console, UserError
 
 
@@ -33,7 +33,7 @@ def add_parser(sub, parents) -> None:
     pg.add_argument("--neighbors", type=positive_int, metavar="K",
                     help="each image's K best partners by view overlap (default, without --pairs: every pair)")
     p.add_argument("--detector", choices=("sift", "orb", "akaze"), default="sift", help="keypoint detector")
-    p.add_argument("--max-features", type=positive_int, default=PRESETS["colmap"].max_features, metavar="N",
+    p.add_argument("--max-features", type=max_features_arg, default=PRESETS["colmap"].max_features, metavar="N",
                    help="keypoints per image")
     p.add_argument("--constraint", choices=("segment", "line"), default="segment",
                    help="search the correct segment or the whole epipolar line")

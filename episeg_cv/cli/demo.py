@@ -14,7 +14,7 @@ from ..features import PRESETS
 from ..io.matches import FORMAT, FORMAT_VERSION, json_number, write_matches
 from ..matching import AcceptRule, SearchConfig
 from ..opencv import SegmentMatcher, pairs_of
-from .args import Formatter, nonneg_float, positive_int
+from .args import Formatter, max_features_arg, seed_arg, nonneg_float, positive_int
 from .common import MAX_LINES, detect, labels_of, run_matching, versions
 from .console import Console, table
 
@@ -30,10 +30,10 @@ def add_parser(sub, parents) -> None:
                                    "ground truth, and write DIR/matches.png, DIR/segments.png and DIR/matches.json.",
                        epilog="example:\n  episeg demo --out episeg_demo")
     p.add_argument("--out", default="episeg_demo", metavar="DIR", help="output folder")
-    p.add_argument("--max-features", type=positive_int, default=4000, metavar="N", help="SIFT keypoints per image")
+    p.add_argument("--max-features", type=max_features_arg, default=4000, metavar="N", help="SIFT keypoints per image")
     p.add_argument("--tol", type=nonneg_float, default=2.0, metavar="PX", help="pixel tolerance of the constraint")
     p.add_argument("--points", type=positive_int, default=12, metavar="N", help="points in segments.png")
-    p.add_argument("--seed", type=int, default=0, help="seed for choosing the points of segments.png")
+    p.add_argument("--seed", type=seed_arg, default=0, help="seed for choosing the points of segments.png")
     p.set_defaults(func=run)
 
 

@@ -4,13 +4,15 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
 from ..distortion import undistort_points
 from ..drawing import draw_matches, save_image
 from ..estimation import GeometryEstimationError, match_without_pose
 from ..features import PRESETS
 from ..io.matches import FORMAT, FORMAT_VERSION, json_number, write_matches
 from ..matching import AcceptRule, SearchConfig, estimate_band
-from .args import Formatter, depth, depth_range_arg, positive_int, ratio_arg, tol_arg
+from .args import Formatter, image_file_arg, max_features_arg, not_an_input, depth, depth_range_arg, ratio_arg, tol_arg
 from .common import MAX_LINES, detect, image_size, labels_of, load_calib, read_image, run_matching, versions
 from .console import Console, UserError
 
@@ -50,9 +52,9 @@ def add_parser(sub, parents) -> None:
     p.add_argument("--ratio", type=ratio_arg, default=None,
                    help=f"ratio test threshold (default: the matcher's, {AcceptRule().ratio})")
     p.add_argument("--cross-check", action="store_true", help="keep only mutual nearest neighbours both ways")
-    p.add_argument("--max-features", type=positive_int, default=4000, metavar="N", help="keypoints per image")
+    p.add_argument("--max-features", type=max_features_arg, default=4000, metavar="N", help="keypoints per image")
     p.add_argument("--out", default=None, metavar="FILE", help="matches file: .json, .npz or .csv")
-    p.add_argument("--figure", default=None, metavar="PNG", help="write a figure of the matches")
+    p.add_argument("--figure", type=image_file_arg, default=None, metavar="PNG", help="write a figure of the matches")
     p.set_defaults(func=run)
 
 
@@ -64,6 +66,8 @@ def _default_tol():
 def run(args, console: Console) -> int:
     if args.out is not None and Path(args.out).suffix.lower() not in MATCH_SUFFIXES:
         raise UserError(f"--out must end in .json, .npz or .csv, got {args.out!r}")
+    for option, path in (("--out", args.out), ("--figure", args.figure)):
+        not_an_input(path, [args.image1, args.image2, args.calib], option)
     search = SearchConfig(tol=args.tol, depth_range=depth_range_arg(args.depth_range), constraint=args.constraint)
     rule = AcceptRule(cross_check=args.cross_check, **({} if args.ratio is None else {"ratio": args.ratio}))
     img1, img2 = read_image(args.image1), read_image(args.image2)
@@ -85,24 +89,31 @@ def run(args, console: Console) -> int:
     if calib is not None and calib.has_distortion:
         console.info("undistorted the keypoints with cv2.undistortPoints (P = K) before matching")
     prog.step("undistorted" if calib is not None and calib.has_distortion else "no distortion")
+    # keypoints where the distortion has no inverse (NaN) are left out; matches index all keypoints
+    i1, i2 = (np.flatnonzero(np.all(np.isfinite(u), axis=1)) for u in (u1, u2))
+    for name, idx, u in (("image 1", i1, u1), ("image 2", i2, u2)):
+        if len(idx) < len(u):
+            console.info(f"{name}: {len(u) - len(idx)} of {len(u)} keypoints lie where the lens distortion cannot be "
+                         "inverted (it folds there); left out of the matching")
+    f1, f2, v1, v2 = des1[i1], des2[i2], u1[i1], u2[i2]
     pose = {"source": "calibration"}
     if posed:
         geom = calib.geometry
         if search.auto is not None and search.constraint != "none" and len(des1) and len(des2):
-            est = estimate_band(des1, des2, u1, u2, geom, norm=features.norm, search=search, rule=rule)
+            est = estimate_band(f1, f2, v1, v2, geom, norm=features.norm, search=search, rule=rule)
             geom, search = est.geometry, search.replace(tol=est.tol)
             pose.update(tol="auto", estimated_tol=est.tol, pose_kept=est.pose_kept,
                         rotation_change_deg=est.rotation_change_deg,
                         translation_change_deg=est.translation_change_deg)
             console.info(f"tol auto: {est.tol:.2f} px, pose {'kept' if est.pose_kept else 'corrected'} "
                          f"({est.rotation_change_deg:.3f} deg, t direction {est.translation_change_deg:.3f} deg)")
-        pairs, dist = run_matching(geom, des1, des2, u1, u2, features.norm, search, rule)
+        pairs, dist = run_matching(geom, f1, f2, v1, v2, features.norm, search, rule)
     else:
         sizes = dict(image_size1=image_size(img1), image_size2=image_size(img2))
         if calib is not None:
             sizes.update(K1=calib.K1, K2=calib.K2)
         try:
-            pairs, dist, est = match_without_pose(des1, des2, u1, u2, norm=features.norm, search=search, rule=rule,
+            pairs, dist, est = match_without_pose(f1, f2, v1, v2, norm=features.norm, search=search, rule=rule,
                                                   **sizes)
         except GeometryEstimationError as exc:
             raise UserError(f"cannot estimate the geometry from the images: {exc}") from None
@@ -112,7 +123,8 @@ def run(args, console: Console) -> int:
         console.info(f"no pose: {est.method} matrix from {len(est.inliers)} of {len(est.first_pass)} first-pass "
                      f"matches; band {est.tol:.2f} px")
     prog.step(f"{len(pairs)} matches")
-    labels, counts = labels_of(pairs, u1, u2, geom, search)
+    labels, counts = labels_of(pairs, v1, v2, geom, search)
+    pairs = np.column_stack([i1[pairs[:, 0]], i2[pairs[:, 1]]]).astype(np.intp)  # into all the keypoints
     prog.step("labelled")
     meta = {"format": FORMAT, "format_version": FORMAT_VERSION, "command": "match", **versions(),
             "image1": str(args.image1), "image2": str(args.image2),

@@ -7,7 +7,10 @@ import numpy as np
 
 from ..distortion import undistort_points
 from ..drawing import draw_segment_figure, save_image
-from .args import Formatter, depth, depth_range_arg, parse_point, positive_int
+from .args import Formatter, bounded_int, depth, depth_range_arg, image_file_arg, not_an_input, parse_point, seed_arg
+
+#: Most random points of a figure (each is drawn; more would not be readable anyway).
+MAX_RANDOM = 100_000
 from .common import load_calib, read_image
 from .console import Console, UserError, table
 
@@ -26,16 +29,17 @@ def add_parser(sub, parents) -> None:
     p.add_argument("--calib", required=True, metavar="FILE", help="calibration file (.json, .yml, .yaml, .xml)")
     src = p.add_mutually_exclusive_group()
     src.add_argument("--points", type=parse_point, nargs="+", metavar="X,Y", help="points of image 1, in pixels")
-    src.add_argument("--random", type=positive_int, default=10, metavar="N",
+    src.add_argument("--random", type=bounded_int(1, MAX_RANDOM), default=10, metavar="N",
                      help="number of random points (when --points is not given)")
-    p.add_argument("--seed", type=int, default=0, help="seed for --random")
+    p.add_argument("--seed", type=seed_arg, default=0, help="seed for --random")
     p.add_argument("--depth-range", type=depth, nargs=2, metavar=("ZMIN", "ZMAX"), default=None,
                    help="depth bounds in camera 1, in the unit of t; default 0 inf")
-    p.add_argument("--out", default="segments.png", metavar="PNG", help="figure to write")
+    p.add_argument("--out", type=image_file_arg, default="segments.png", metavar="PNG", help="figure to write")
     p.set_defaults(func=run)
 
 
 def run(args, console: Console) -> int:
+    not_an_input(args.out, [args.image1, args.image2, args.calib], "--out")
     depth_range = depth_range_arg(args.depth_range)
     img1, img2 = read_image(args.image1), read_image(args.image2)
     calib = load_calib(args.calib, img1, img2, console)

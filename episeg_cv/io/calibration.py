@@ -343,7 +343,7 @@ def _read_filestorage(path: Path) -> dict:
     try:
         root = fs.root()
         out = {}
-        for k in root.keys():
+        for k in (root.keys() if root.isMap() else []):  # an empty file (header only) has no map: nothing in it
             try:
                 out[k] = _node_value(fs.getNode(k))
             except (cv2.error, SystemError, ValueError, OverflowError) as exc:
@@ -421,8 +421,8 @@ def _size(data: dict, keys, source: str):
             arr = np.zeros(0)
         if arr.size != 2 or not np.all(np.isfinite(arr)) or np.any(arr <= 0) or np.any(arr != np.round(arr)) \
                 or np.any(arr > MAX_IMAGE_SIDE):
-            raise ValueError(f"{source}: key {label} must be [width, height], two integers in [1, {MAX_IMAGE_SIDE}], "
-                             f"got {short_repr(v)}")
+            raise ValueError(f"{source}: key {label} must be [width, height], two positive integers at most "
+                             f"{MAX_IMAGE_SIDE}, got {short_repr(v)}")
         return int(arr[0]), int(arr[1])
     return None
 
@@ -469,8 +469,8 @@ def _from_mapping(data: dict, source: str) -> Calibration:
 
     if any(k in data for k in ("M1", "M2", "D1", "D2", "T")) and not any(k in data for k in ("K1", "K2", "K", "t")):
         # cv2.stereoCalibrate names
-        K1 = _matrix(data, "M1", (3, 3), source)
-        K2 = _matrix(data, "M2", (3, 3), source)
+        K1 = _checked(as_camera_matrix, _matrix(data, "M1", (3, 3), source), "M1", source)
+        K2 = _checked(as_camera_matrix, _matrix(data, "M2", (3, 3), source), "M2", source)
         _pose_keys(data, (("R",), ("T", "t")), source)
         R = _matrix(data, "R", (3, 3), source, required=False)
         t = _matrix(data, "T" if "T" in data else "t", (3,), source, required=False)

@@ -76,24 +76,32 @@ def write_matches(path, meta: dict, keypoints1, keypoints2, matches, distances, 
         raise ValueError(f"matches, distances and labels must have the same length, got {len(m)}, {len(d)}, {len(labels)}")
     extra = extra or {}
     suffix = path.suffix.lower()
-    with written_atomically(path) as tmp:
-        if suffix == ".json":
-            out = {"meta": meta, "keypoints1": np.round(k1, 4).tolist(), "keypoints2": np.round(k2, 4).tolist(),
-                   "matches": m.tolist(), "distances": [round(float(x), 5) for x in d], "labels": labels}
-            out.update({k: np.round(np.asarray(v, np.float64), 4).tolist() for k, v in extra.items()})
-            tmp.write_text(json.dumps(out, separators=(",", ":")) + "\n")
-        elif suffix == ".npz":
-            np.savez_compressed(tmp, meta=np.array(json.dumps(meta)), keypoints1=k1, keypoints2=k2, matches=m,
-                                distances=d.astype(np.float32), labels=np.array(labels, dtype="U16"),
-                                **{k: np.asarray(v, np.float64) for k, v in extra.items()})
-        else:  # .csv
-            with tmp.open("w", newline="") as f:
-                w = csv.writer(f)
-                w.writerow(["x1", "y1", "x2", "y2", "distance", "label"])
-                for (i, j), dist, lab in zip(m, d, labels):
-                    w.writerow([f"{k1[i, 0]:.4f}", f"{k1[i, 1]:.4f}", f"{k2[j, 0]:.4f}", f"{k2[j, 1]:.4f}",
-                                f"{dist:.5g}", lab])
+    try:
+        with written_atomically(path) as tmp:
+            if suffix == ".json":
+                out = {"meta": meta, "keypoints1": np.round(k1, 4).tolist(), "keypoints2": np.round(k2, 4).tolist(),
+                       "matches": m.tolist(), "distances": [round(float(x), 5) for x in d], "labels": labels}
+                out.update({k: _json_points(v) for k, v in extra.items()})
+                tmp.write_text(json.dumps(out, separators=(",", ":")) + "\n")
+            elif suffix == ".npz":
+                np.savez_compressed(tmp, meta=np.array(json.dumps(meta)), keypoints1=k1, keypoints2=k2, matches=m,
+                                    distances=d.astype(np.float32), labels=np.array(labels, dtype="U16"),
+                                    **{k: np.asarray(v, np.float64) for k, v in extra.items()})
+            else:  # .csv
+                with tmp.open("w", newline="") as f:
+                    w = csv.writer(f)
+                    w.writerow(["x1", "y1", "x2", "y2", "distance", "label"])
+                    for (i, j), dist, lab in zip(m, d, labels):
+                        w.writerow([f"{k1[i, 0]:.4f}", f"{k1[i, 1]:.4f}", f"{k2[j, 0]:.4f}", f"{k2[j, 1]:.4f}",
+                                    f"{dist:.5g}", lab])
+    except OSError as exc:
+        raise OSError(f"matches file {str(path)!r}: cannot write it ({exc.strerror or exc})") from None
     return path
+
+
+def _json_points(points) -> list:
+    """(N, 2) points as JSON lists, rounded; ``null`` where a coordinate is NaN (no position)."""
+    return [[json_number(round(x, 4)), json_number(round(y, 4))] for x, y in np.asarray(points, np.float64).tolist()]
 
 
 def read_matches(path) -> dict:
@@ -121,7 +129,6 @@ def read_matches(path) -> dict:
         if suffix == ".npz":
             with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as z:  # (our handle: closed on any error)
                 data = {k: z[k] for k in z.files}
-            data["meta"] = json.loads(str(data["meta"])) if "meta" in data else None
         else:
             data = json.loads(path.read_text(encoding="utf-8"))
     except (ValueError, OSError, EOFError, RecursionError, zipfile.BadZipFile, UnicodeDecodeError) as exc:
@@ -132,23 +139,31 @@ def read_matches(path) -> dict:
     missing = [k for k in ("meta", "keypoints1", "keypoints2", "matches", "distances", "labels") if k not in data]
     if missing:
         raise ValueError(f"matches file {str(path)!r} is not an episeg matches file: missing {', '.join(missing)}")
-    out = {"meta": data["meta"]}
-    try:
-        for k, v in data.items():
-            if k.startswith("keypoints"):
+    out = {}
+    for k, v in data.items():
+        try:
+            if k == "meta":
+                out[k] = json.loads(str(v)) if suffix == ".npz" else v
+                if not isinstance(out[k], dict):
+                    raise ValueError(f"expected an object, got {type(out[k]).__name__}")
+            elif k.startswith("keypoints"):
                 out[k] = _array(v, np.float64, (-1, 2))
-        out["matches"] = _array(data["matches"], np.intp, (-1, 2))
-        out["distances"] = _array(data["distances"], np.float64, (-1,))
-        out["labels"] = np.asarray(data["labels"], dtype="U16").reshape(-1)
-    except (ValueError, TypeError, OverflowError, RecursionError) as exc:
-        raise ValueError(f"matches file {str(path)!r}: {' '.join(str(exc).split())[:200]}") from None
+            elif k == "matches":
+                out[k] = _array(v, np.intp, (-1, 2))
+            elif k == "distances":
+                out[k] = _array(v, np.float64, (-1,))
+            elif k == "labels":
+                out[k] = np.asarray(v, dtype="U16").reshape(-1)
+        except (ValueError, TypeError, OverflowError, RecursionError) as exc:
+            raise ValueError(f"matches file {str(path)!r}: key '{k}': {' '.join(str(exc).split())[:160]}") from None
     n = len(out["matches"])
     if not len(out["distances"]) == len(out["labels"]) == n:
         raise ValueError(f"matches file {str(path)!r}: matches, distances and labels must have the same length, "
                          f"got {n}, {len(out['distances'])}, {len(out['labels'])}")
     for col, key in ((0, "keypoints1"), (1, "keypoints2")):
         if n and (out["matches"][:, col].min() < 0 or out["matches"][:, col].max() >= len(out[key])):
-            raise ValueError(f"matches file {str(path)!r}: a match indexes past the {len(out[key])} {key}")
+            raise ValueError(f"matches file {str(path)!r}: key 'matches': an index is out of range for the "
+                             f"{len(out[key])} {key}")
     return out
 
 

@@ -71,6 +71,11 @@ def input_file(path, what: str) -> Path:
 def written_atomically(path: Path):
     """Yield a temporary path beside ``path`` (same suffix) to write; on success it replaces ``path``
     at once, on any error or interrupt it is removed. A reader never sees a half-written file."""
+    if path.is_symlink():  # replace the file the link names, not the link
+        path = path.resolve()
+    if path.exists() and not path.is_file():  # a device, a pipe: written in place (nothing to replace)
+        yield path
+        return
     tmp = path.with_name(f".{path.stem}.{os.getpid()}.{threading.get_ident()}.tmp{path.suffix}")
     try:
         yield tmp
