@@ -39,9 +39,17 @@ def folder(collection, tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def reference(folder, tmp_path_factory):
-    """One full run with the defaults (segment, depth_range auto, 1 worker)."""
+    """One full run with the defaults (segment, depth_range auto, track consensus, 1 worker)."""
     db = tmp_path_factory.mktemp("ref") / "ref.db"
     report = colmap.match_model(folder["model"], folder["images"], db)
+    return db, report, colmap.read_database_matches(db)
+
+
+@pytest.fixture(scope="module")
+def reference_pairs(folder, tmp_path_factory):
+    """The same with each pair verified on its own (``verify="pairs"``)."""
+    db = tmp_path_factory.mktemp("ref_pairs") / "ref.db"
+    report = colmap.match_model(folder["model"], folder["images"], db, verify="pairs")
     return db, report, colmap.read_database_matches(db)
 
 
@@ -156,50 +164,67 @@ def test_line_constraint_keeps_at_least_the_segment_matches_count(folder, tmp_pa
 # --------------------------------------------------------------------------------------
 # Resume, interruption, workers, Dask
 # --------------------------------------------------------------------------------------
-def test_resume_after_a_partial_run_gives_the_same_database(folder, reference, tmp_path):
-    db = tmp_path / "part.db"
+def test_resume_after_a_partial_run_gives_the_same_database(folder, reference, reference_pairs, tmp_path):
     pairs_file = tmp_path / "pairs.txt"
     pairs_file.write_text("view_000.png view_001.png\nview_002.png view_003.png\n")
-    part = colmap.match_model(folder["model"], folder["images"], db, pairs=pairs_file)
+    # pairs verified on their own: the pairs written are skipped
+    db = tmp_path / "part.db"
+    part = colmap.match_model(folder["model"], folder["images"], db, pairs=pairs_file, verify="pairs")
     assert part.n_pairs_done == 2
-    rest = colmap.match_model(folder["model"], folder["images"], db, resume=True)
+    rest = colmap.match_model(folder["model"], folder["images"], db, resume=True, verify="pairs")
     assert rest.n_skipped == 2 and rest.n_pairs_done == 4
+    _same(colmap.read_database_matches(db), reference_pairs[2])
+    again = colmap.match_model(folder["model"], folder["images"], db, resume=True, verify="pairs")
+    assert again.n_pairs_done == 0 and again.n_skipped == 6
+    # the track consensus sees every pair: the first two, verified on a smaller graph, are rewritten
+    db = tmp_path / "part_tracks.db"
+    colmap.match_model(folder["model"], folder["images"], db, pairs=pairs_file)
+    rest = colmap.match_model(folder["model"], folder["images"], db, resume=True)
+    assert rest.n_skipped + rest.n_pairs_done == 6 and rest.n_pairs_done >= 4
     _same(colmap.read_database_matches(db), reference[2])
     again = colmap.match_model(folder["model"], folder["images"], db, resume=True)
     assert again.n_pairs_done == 0 and again.n_skipped == 6
 
 
-def test_interrupted_run_leaves_a_usable_database(folder, reference, tmp_path):
+@pytest.mark.parametrize("verify, stage", [("pairs", "pairs"), ("tracks", "write"), ("tracks", "pairs")])
+def test_interrupted_run_leaves_a_usable_database(folder, reference, reference_pairs, tmp_path, verify, stage):
     db = tmp_path / "int.db"
 
-    def stop_after_two(stage, done, total):
-        if stage == "pairs" and done == 2:
+    def stop_after_two(s, done, total):
+        if s == stage and done == 2:
             raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
-        colmap.match_model(folder["model"], folder["images"], db, progress=stop_after_two)
-    assert len(colmap.read_database_matches(db)) == 2  # whole pairs only
-    rest = colmap.match_model(folder["model"], folder["images"], db, resume=True)
-    assert rest.n_skipped == 2
-    _same(colmap.read_database_matches(db), reference[2])
+        colmap.match_model(folder["model"], folder["images"], db, progress=stop_after_two, verify=verify)
+    written = colmap.read_database_matches(db)
+    # whole pairs only; with the consensus nothing is written while the pairs are matched
+    assert len(written) == (0 if (verify, stage) == ("tracks", "pairs") else 2)
+    rest = colmap.match_model(folder["model"], folder["images"], db, resume=True, verify=verify)
+    assert rest.n_skipped == len(written)
+    _same(colmap.read_database_matches(db), (reference_pairs if verify == "pairs" else reference)[2])
 
 
-def test_resume_redoes_a_pair_with_matches_but_no_geometry(folder, reference, tmp_path):
+@pytest.mark.parametrize("verify", ["pairs", "tracks"])
+def test_resume_redoes_a_pair_with_matches_but_no_geometry(folder, reference, reference_pairs, tmp_path, verify):
     """What an exception inside pycolmap's transaction (which commits on exit) would leave behind."""
     db_path = tmp_path / "orphan.db"
-    colmap.match_model(folder["model"], folder["images"], db_path, pairs=[("view_000.png", "view_001.png")])
+    colmap.match_model(folder["model"], folder["images"], db_path, pairs=[("view_000.png", "view_001.png")],
+                       verify=verify)
     db = pycolmap.Database.open(str(db_path))
     db.write_matches(1, 3, np.array([[0, 0], [1, 1]], dtype=np.uint32))  # no two-view geometry
     db.close()
-    rest = colmap.match_model(folder["model"], folder["images"], db_path, resume=True)
-    assert rest.n_skipped == 1 and rest.n_pairs_done == 5
-    _same(colmap.read_database_matches(db_path), reference[2])
+    rest = colmap.match_model(folder["model"], folder["images"], db_path, resume=True, verify=verify)
+    if verify == "pairs":
+        assert rest.n_skipped == 1 and rest.n_pairs_done == 5
+    else:
+        assert rest.n_skipped + rest.n_pairs_done == 6
+    _same(colmap.read_database_matches(db_path), (reference_pairs if verify == "pairs" else reference)[2])
 
 
 def test_two_workers_give_identical_matches(folder, reference, tmp_path):
     report = colmap.match_model(folder["model"], folder["images"], tmp_path / "w2.db", workers=2,
                                 cache_dir=tmp_path / "cache")
-    assert report.runner == "2 local processes"
+    assert report.runner == "2 threads"
     _same(colmap.read_database_matches(tmp_path / "w2.db"), reference[2])
 
 
@@ -213,7 +238,7 @@ def test_local_dask_cluster_gives_identical_matches(folder, reference, tmp_path)
 def test_feature_cache_is_reused_and_refreshed(folder, tmp_path):
     shutil.copytree(folder["images"], tmp_path / "images")
     views, _ = colmap.load_model(folder["model"])
-    store = FeatureStore(tmp_path / "cache", tmp_path / "images", PRESETS["colmap"].replace(max_features=500))
+    store = FeatureStore(tmp_path / "cache", tmp_path / "images", PRESETS["collection"].replace(max_features=500))
     n = store.ensure(views[0])
     mtime = store.path(views[0]).stat().st_mtime_ns
     assert store.ensure(views[0]) == n and store.path(views[0]).stat().st_mtime_ns == mtime  # a cache hit
@@ -327,7 +352,8 @@ def test_resume_refuses_a_database_of_other_features(folder, reference, tmp_path
     db = tmp_path / "r.db"
     shutil.copy(reference[0], db)
     with pytest.raises(ValueError, match="features.max_features was 8192, now 100"):
-        colmap.match_model(folder["model"], folder["images"], db, resume=True, features=PRESETS["colmap"].replace(max_features=100))
+        colmap.match_model(folder["model"], folder["images"], db, resume=True,
+                           features=PRESETS["collection"].replace(max_features=100))
 
 
 def test_unreachable_scheduler_fails_fast(folder, tmp_path, monkeypatch):
