@@ -114,7 +114,7 @@ class Runner:
                 if n < 1:
                     raise ValueError(f"scheduler must be an address or local:N with N >= 1, got {scheduler!r}")
                 self._cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                                                         dashboard_address=None, host="127.0.0.1")
+                                                         host="127.0.0.1", dashboard_address="127.0.0.1:0")
                 self._client = distributed.Client(self._cluster)
                 self._client.register_plugin(WarmWorker(os.getpid()))  # with the watchdog
                 self.describe = f"a local Dask cluster of {n} workers"

@@ -3,6 +3,7 @@
 import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -233,6 +234,56 @@ def test_local_dask_cluster_gives_identical_matches(folder, reference, tmp_path)
     report = colmap.match_model(folder["model"], folder["images"], tmp_path / "dask.db", scheduler="local:2")
     assert "Dask" in report.runner
     _same(colmap.read_database_matches(tmp_path / "dask.db"), reference[2])
+
+
+def test_dask_cluster_of_separate_worker_processes(folder, reference, tmp_path):
+    """The documented recipe, on loopback: ``dask scheduler`` and two ``dask worker ADDRESS`` processes.
+
+    Bounded: the scheduler stops after 120 s idle and the workers after 300 s whatever happens, and
+    every process started here is ended at the end of the test.
+    """
+    pytest.importorskip("distributed")
+    import json
+    import time
+
+    dask = shutil.which("dask", path=str(Path(sys.executable).parent)) or shutil.which("dask")
+    if dask is None:
+        pytest.skip("the dask command is not installed")
+    info = tmp_path / "scheduler.json"
+    procs = [subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
+                               "--dashboard-address", "127.0.0.1:0",
+                               "--scheduler-file", str(info), "--idle-timeout", "120s"],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    try:
+        for _ in range(600):
+            if info.is_file() and info.stat().st_size:
+                break
+            time.sleep(0.1)
+        address = json.loads(info.read_text())["address"]
+        assert address.startswith("tcp://127.0.0.1:")
+        for k in range(2):
+            procs.append(subprocess.Popen([dask, "worker", address, "--host", "127.0.0.1", "--nworkers", "1",
+                                           "--nthreads", "1", "--no-dashboard", "--lifetime", "300s",
+                                           "--death-timeout", "60s", "--name", f"w{k}"],
+                                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        import distributed
+
+        with distributed.Client(address, timeout="30s") as client:
+            client.wait_for_workers(2, timeout=120)
+        report = colmap.match_model(folder["model"], folder["images"], tmp_path / "cluster.db", scheduler=address,
+                                    cache_dir=tmp_path / "cache")
+        assert report.runner == f"the Dask cluster at {address}"
+        _same(colmap.read_database_matches(tmp_path / "cluster.db"), reference[2])
+        # the workers serve other clients too: they outlive the run
+        assert all(p.poll() is None for p in procs)
+    finally:
+        for p in procs[::-1]:
+            p.terminate()
+        for p in procs[::-1]:
+            try:
+                p.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                p.kill()
 
 
 def test_feature_cache_is_reused_and_refreshed(folder, tmp_path):
