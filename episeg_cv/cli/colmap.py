@@ -30,9 +30,10 @@ def add_parser(sub, parents) -> None:
                               "  episeg colmap dinoSR_par.txt dinoSparseRing --database dino.db --triangulate tri\n"
                               "  colmap feature_extractor --database_path colmap.db --image_path images && \\\n"
                               "    episeg colmap sparse/0 images --database colmap.db --features database\n"
-                              "  dask scheduler --port 8786 & dask worker tcp://10.0.0.5:8786 (on each machine) && \\\n"
-                              "    episeg colmap sparse/0 images --database out.db --scheduler tcp://10.0.0.5:8786 "
-                              "--resume")
+                              "  # a Dask cluster: 'dask scheduler' on 10.0.0.5, 'dask worker tcp://10.0.0.5:8786' on "
+                              "each machine, then:\n"
+                              "  episeg colmap sparse/0 images --database out.db --cache /shared/cache "
+                              "--scheduler tcp://10.0.0.5:8786")
     p.add_argument("model", help="COLMAP model folder (cameras, images, points3D; .bin or .txt), poses JSON, or "
                                  "Middlebury *_par.txt")
     p.add_argument("image_dir", help="folder of the images, named as in the model")
@@ -79,7 +80,9 @@ def add_parser(sub, parents) -> None:
                    help="then run pycolmap.triangulate_points and write the model to OUT_DIR")
     rg = p.add_mutually_exclusive_group()
     rg.add_argument("--resume", action="store_true", help="continue DB, skipping the pairs it holds")
-    rg.add_argument("--overwrite", action="store_true", help="replace an existing DB")
+    rg.add_argument("--overwrite", action="store_true",
+                    help="replace an existing DB (with --features database: its matches and two-view geometries "
+                         "only)")
     p.set_defaults(func=run)
 
 

@@ -127,6 +127,35 @@ def test_triangulation_is_accurate(folder, reference, collection, tmp_path):
     assert (tmp_path / "tri" / "points3D.bin").is_file()
 
 
+def test_track_consensus_keeps_more_true_matches_than_the_pair_rule(folder, reference, reference_pairs,
+                                                                     collection, tmp_path):
+    """Against ground truth from the rendered depth: more correct inliers at about the same precision."""
+    db_t, rep_t, m_t = reference
+    db_p, rep_p, m_p = reference_pairs
+    assert rep_t.verify["mode"] == "tracks" and rep_t.verify["kept"] == rep_t.n_inliers
+    assert rep_p.verify == {"mode": "pairs"} and "track consensus" not in rep_p.summary()
+    assert "track consensus" in rep_t.summary()
+    views, rec = colmap.load_model(folder["model"])
+    index = {v.name: k for k, v in enumerate(views)}
+    store = FeatureStore(db_t.with_name(db_t.name + ".features"), folder["images"])
+    stats = {}
+    for label, matches in (("tracks", m_t), ("pairs", m_p)):
+        good = total = 0
+        for (a, b), (_, inl) in matches.items():
+            i, j = index[a], index[b]
+            p1, p2 = store.load(views[i])[1], store.load(views[j])[1]
+            gt = scenes.ground_truth_matches(p1, p2, collection.depths[i], collection.depths[j],
+                                             collection.geometry(i, j))
+            good += int(gt.is_correct(inl.astype(np.intp)).sum())
+            total += len(inl)
+        stats[label] = (good, good / total)
+    assert stats["tracks"][0] > stats["pairs"][0]
+    assert stats["tracks"][1] > stats["pairs"][1] - 0.03
+    rec_t = colmap.triangulate(db_t, folder["model"], folder["images"], tmp_path / "t")
+    rec_p = colmap.triangulate(db_p, folder["model"], folder["images"], tmp_path / "p")
+    assert rec_t.num_points3D() >= rec_p.num_points3D() and _accuracy(rec_t, collection) > 0.9
+
+
 def test_poses_json_gives_the_same_matches_as_the_model(folder, reference, tmp_path):
     db = tmp_path / "json.db"
     report = colmap.match_model(folder["poses"], folder["images"], db, depth_range="none")
@@ -462,6 +491,10 @@ def test_cli_colmap_and_triangulate(folder, tmp_path):
     (["--depth-range", "1"], "--depth-range"),
     (["--pairs", "PAIRS"], "unknown image 'ghost.png'"),
     (["--scheduler", "tcp://127.0.0.1:9"], "cannot reach the Dask scheduler"),
+    (["--features", "database"], "does not exist; --features database reads the features from it"),
+    (["--features", "database", "--detector", "orb"], "--detector and --max-features apply to --features extract"),
+    (["--verify", "pairs", "--loose-ratio", "0.8"], "--loose-ratio applies to --verify tracks"),
+    (["--ratio", "0.95"], "loose ratio (0.9) must be above the pair rule's ratio (0.95)"),
 ])
 def test_cli_errors_are_one_line(folder, tmp_path, extra, match):
     (tmp_path / "pairs.txt").write_text("view_000.png ghost.png\n")
