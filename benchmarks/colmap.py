@@ -16,10 +16,19 @@ and total time. Then pairs/s of method 4 with 1 and 2 worker processes and a
 local Dask cluster (checking identical matches), and the peak resident memory
 of a matching run at two collection sizes, each measured in its own process.
 
+Issue 14 adds a second part (``_colmap_sets.py``): the real dinoSparseRing
+collection (Seitz et al., CVPR 2006; from ``<repo>/../shared/data``, or
+``--data DIR``; skipped with a note when absent) and synthetic rooms, each
+with pycolmap's pipeline, pycolmap's known-pose ``match_guided``, ours on
+COLMAP's own features (``features="database"``) and ours end to end, with the
+pair rule and the track consensus, under COLMAP's default triangulation and
+with two-view tracks; the issue's goals evaluated from the numbers; and pairs/s
+with 1 and 2 workers and a local Dask cluster on 24 views.
+
 Usage::
 
-    python benchmarks/colmap.py            # 12 views at 640x480, 5 repeats, workers, Dask, memory (~7 min)
-    python benchmarks/colmap.py --quick    # 6 views at 480x360, 1 repeat, no Dask, memory at one size (<1 min)
+    python benchmarks/colmap.py            # 12 views at 640x480, 5 repeats, workers, Dask, memory, dino + 2 rooms
+    python benchmarks/colmap.py --quick    # 6 views at 480x360, 1 repeat, no Dask, memory at one size, dino (~2 min)
 
 Writes ``benchmarks/results/colmap.{md,json}`` (``benchmarks/results/quick/`` with ``--quick``, git-ignored).
 """
@@ -42,6 +51,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _colmap_sets as sets  # noqa: E402
 from _common import machine_metadata, package_dirty  # noqa: E402
 
 SCRIPT = "benchmarks/colmap.py"
@@ -49,9 +59,10 @@ RESULTS = Path(__file__).resolve().parent / "results"
 MAX_FEATURES = 8192
 ACCURACY = 0.01  # |z_true - z| <= ACCURACY * z
 FULL = {"n_views": 12, "image_size": (640, 480), "repeats": 5, "dask": True, "memory_views": (12, 24),
-        "memory_workers": (1, 2)}
+        "memory_workers": (1, 2), "sets": ["dino", [12, 7], [10, 3]], "parallel_views": 24, "parallel_repeats": 3}
 QUICK = {"n_views": 6, "image_size": (480, 360), "repeats": 1, "dask": False, "memory_views": (6,),
-         "memory_workers": (1,)}
+         "memory_workers": (1,), "sets": ["dino"], "parallel_views": 0, "parallel_repeats": 0}
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"  # <repo>/../shared/data
 SEED = 7
 OURS = {  # label -> (constraint, depth_range, ratio; None: the library's default)
     "ours, line": ("line", "none", None),
@@ -161,7 +172,7 @@ def run_ours(paths, work: Path, tag: str, constraint: str, depth_range: str, max
     t0 = time.perf_counter()
     report = colmap.match_model(paths["model"], paths["images"], database, constraint=constraint,
                                 depth_range=depth_range, workers=workers, scheduler=scheduler,
-                                features=PRESETS["colmap"].replace(max_features=max_features), overwrite=True,
+                                features=PRESETS["collection"].replace(max_features=max_features), overwrite=True,
                                 cache_dir=cache,
                                 log=warnings.append, **({} if ratio is None else {"ratio": ratio}))
     t1 = time.perf_counter()
@@ -418,7 +429,7 @@ def child_main(folder: str, method: str, workers: int) -> int:
         else:
             report = colmap.match_model(paths["model"], paths["images"], work / "db.db", constraint="segment",
                                         depth_range="auto", workers=workers,
-                                        features=PRESETS["colmap"].replace(max_features=MAX_FEATURES),
+                                        features=PRESETS["collection"].replace(max_features=MAX_FEATURES),
                                         cache_dir=work / "features", overwrite=True, log=lambda m: None)
             n_pairs = report.n_pairs_done
     seconds = time.perf_counter() - t0
@@ -447,6 +458,45 @@ def measure_memory(folder: Path, method: str, workers: int) -> dict:
 # --------------------------------------------------------------------------------------
 def _median(xs):
     return statistics.median(xs) if xs else float("nan")
+
+
+def run_sets(cfg: dict, work: Path, data_dir: Path) -> dict:
+    """Part 2 (issue 14): every method on dino and the synthetic rooms; pairs/s on 24 views."""
+    from episeg_cv import colmap, scenes
+
+    out = {"sets": {}, "data_dir": str(data_dir), "workers": os.cpu_count() or 1}
+    for spec in cfg["sets"]:
+        if spec == "dino":
+            folder = sets.find_dino(data_dir)
+            if folder is None:
+                out["dino_missing"] = True
+                progress(f"NOTE: dinoSparseRing not found under {data_dir}; the real collection is skipped "
+                         "(--data DIR)")
+                continue
+            model = folder / sets.DINO_PAR
+            views = colmap.load_par(model, folder)
+            masks = sets.dino_masks(folder, [v.name for v in views])
+            name, image_dir = "dinoSparseRing (real)", folder
+            quality_fn = lambda rec, views=views, masks=masks: sets.dino_quality(rec, views, masks)  # noqa: E731
+        else:
+            n, seed = spec
+            c = scenes.make_collection(n, cfg["image_size"], seed=seed)
+            paths = colmap.save_collection(c, work / f"set_room{n}_s{seed}")
+            model, image_dir = paths["model"], paths["images"]
+            views, _ = colmap.load_model(model)
+            name = f"room, {n} views, seed {seed} (synthetic)"
+            quality_fn = lambda rec, c=c: quality(rec, c)  # noqa: E731
+        progress(f"part 2: {name}")
+        out["sets"][name] = sets.run_set(name, model, image_dir, views, quality_fn, work / f"set_{len(out['sets'])}",
+                                         MAX_FEATURES, out["workers"])
+    if cfg["parallel_views"]:
+        n = cfg["parallel_views"]
+        paths = colmap.save_collection(scenes.make_collection(n, cfg["image_size"], seed=SEED), work / f"par_{n}")
+        progress(f"part 2: parallel runs on {n} views")
+        out["parallel"] = sets.run_parallel(paths["model"], paths["images"], work / "parallel24",
+                                            cfg["parallel_repeats"], cfg["dask"])
+        out["parallel"]["n_views"] = n
+    return out
 
 
 def run(cfg: dict, work: Path) -> dict:
@@ -705,6 +755,9 @@ def write_markdown(path: Path, res: dict) -> None:
 
     L.append("## What the numbers say\n")
     L.extend(verdict(res))
+    L.append("")
+    if res.get("part2"):
+        L.extend(sets.markdown(res["part2"]))
     path.write_text("\n".join(L) + "\n")
 
 
@@ -807,6 +860,8 @@ def parse_args(argv=None):
     p.add_argument("--out", type=Path, default=None,
                    help="output directory (default benchmarks/results; benchmarks/results/quick with --quick)")
     p.add_argument("--keep", type=Path, default=None, help="keep the work folder (images, databases) here")
+    p.add_argument("--data", type=Path, default=DATA,
+                   help="folder holding dinoSparseRing/ (default: <repo>/../shared/data)")
     p.add_argument("--child", nargs=3, metavar=("FOLDER", "METHOD", "WORKERS"), help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.repeats is not None and args.repeats < 1:
@@ -836,6 +891,7 @@ def main(argv=None) -> int:
         work = Path(tempfile.mkdtemp(prefix="colmap_bench_"))
     try:
         body = run(cfg, work)
+        body["part2"] = run_sets(cfg, work, args.data)
     finally:
         if not args.keep:
             shutil.rmtree(work, ignore_errors=True)
@@ -861,6 +917,8 @@ def main(argv=None) -> int:
     progress(f"wrote {args.out / (stem + '.md')} and {stem}.json in {res['wall_time_s']:.0f} s")
     for line in verdict(res):
         print(line)
+    for goal, name, met, text in sets.goals(res["part2"]["sets"]):
+        print(f"- {goal}, {name}: {'met' if met else 'NOT met'} ({text})")
     return 0
 
 

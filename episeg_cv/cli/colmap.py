@@ -6,6 +6,8 @@ import argparse
 import sys
 import time
 
+from ..colmap.consensus import TrackConsensus
+from ..colmap.pipeline import VERIFY
 from ..features import PRESETS
 from ..matching import AcceptRule, SearchConfig
 from .args import Formatter, max_features_arg, depth, nonneg_float, positive_int, ratio_arg
@@ -19,22 +21,37 @@ def add_parser(sub, parents) -> None:
                                    "epipolar segments from the known poses, and write a COLMAP database (cameras, "
                                    "rigs, frames, images, keypoints, matches, CALIBRATED two-view geometries) that "
                                    "'colmap point_triangulator' or pycolmap.triangulate_points uses unchanged. "
-                                   "MODEL is a COLMAP sparse model folder or a poses JSON (see "
-                                   "episeg_cv.colmap.load_poses).",
+                                   "By default the candidates of every pair are verified together with the known "
+                                   "poses (the track consensus) before anything is written. MODEL is a COLMAP "
+                                   "sparse model folder, a poses JSON (see episeg_cv.colmap.load_poses) or a "
+                                   "Middlebury multi-view *_par.txt.",
                        epilog="examples:\n  episeg colmap sparse/0 images --database out.db --neighbors 10 "
                               "--triangulate tri\n  episeg colmap poses.json images --database out.db --workers 2\n"
-                              "  episeg colmap sparse/0 images --database out.db --scheduler tcp://10.0.0.5:8786 "
-                              "--resume")
-    p.add_argument("model", help="COLMAP model folder (cameras, images, points3D; .bin or .txt) or poses JSON")
+                              "  episeg colmap dinoSR_par.txt dinoSparseRing --database dino.db --triangulate tri\n"
+                              "  colmap feature_extractor --database_path colmap.db --image_path images && \\\n"
+                              "    episeg colmap sparse/0 images --database colmap.db --features database\n"
+                              "  # a Dask cluster: 'dask scheduler' on 10.0.0.5, 'dask worker tcp://10.0.0.5:8786' on "
+                              "each machine, then:\n"
+                              "  episeg colmap sparse/0 images --database out.db --cache /shared/cache "
+                              "--scheduler tcp://10.0.0.5:8786")
+    p.add_argument("model", help="COLMAP model folder (cameras, images, points3D; .bin or .txt), poses JSON, or "
+                                 "Middlebury *_par.txt")
     p.add_argument("image_dir", help="folder of the images, named as in the model")
     p.add_argument("--database", required=True, metavar="DB", help="COLMAP database to write")
     pg = p.add_mutually_exclusive_group()
     pg.add_argument("--pairs", metavar="FILE", help="pairs file, one 'name1 name2' per line (COLMAP/hloc)")
     pg.add_argument("--neighbors", type=positive_int, metavar="K",
                     help="each image's K best partners by view overlap (default, without --pairs: every pair)")
-    p.add_argument("--detector", choices=("sift", "orb", "akaze"), default="sift", help="keypoint detector")
-    p.add_argument("--max-features", type=max_features_arg, default=PRESETS["colmap"].max_features, metavar="N",
-                   help="keypoints per image")
+    p.add_argument("--features", choices=("extract", "database"), default="extract",
+                   help="extract: detect features here (SIFT set up for collections: contrast threshold 0.01, "
+                        "sigma 1.4, RootSIFT); database: match the keypoints and descriptors that colmap "
+                        "feature_extractor or pycolmap.extract_features wrote into DB, and write the matches there "
+                        "(images found by name)")
+    p.add_argument("--detector", choices=("sift", "orb", "akaze"), default=None,
+                   help="keypoint detector, with --features extract (default: sift)")
+    p.add_argument("--max-features", type=max_features_arg, default=None, metavar="N",
+                   help=f"keypoints per image, with --features extract (default: "
+                        f"{PRESETS['collection'].max_features})")
     p.add_argument("--constraint", choices=("segment", "line"), default="segment",
                    help="search the correct segment or the whole epipolar line")
     p.add_argument("--depth-range", nargs="+", default=["auto"], metavar="SPEC",
@@ -45,16 +62,27 @@ def add_parser(sub, parents) -> None:
     p.add_argument("--ratio", type=ratio_arg, default=None,
                    help=f"ratio test of the guided matcher, with its mutual check (default: the matcher's, "
                         f"{AcceptRule().ratio})")
-    p.add_argument("--workers", type=positive_int, default=1, metavar="N", help="local worker processes")
+    p.add_argument("--verify", choices=VERIFY, default="tracks",
+                   help="tracks: verify the candidates of all pairs together with the known poses (a match with a "
+                        "ratio between --ratio and --loose-ratio needs a track of 3 views); pairs: each pair's "
+                        "matches under --ratio alone, written as they come")
+    p.add_argument("--loose-ratio", type=ratio_arg, default=None, metavar="R",
+                   help=f"largest ratio of a candidate the track consensus may keep (default: "
+                        f"{TrackConsensus().loose})")
+    p.add_argument("--workers", type=positive_int, default=1, metavar="N",
+                   help="threads for features and pairs (the compiled kernels run in parallel)")
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",
-                   help="Dask scheduler address, or local:N for a new LocalCluster (needs episeg_cv[dask])")
+                   help="Dask scheduler address (workers started with 'dask worker ADDRESS'), or local:N for a new "
+                        "LocalCluster of N processes (needs episeg_cv[dask])")
     p.add_argument("--cache", default=None, metavar="DIR",
                    help="feature cache folder (default: DB.features, next to the database)")
     p.add_argument("--triangulate", default=None, metavar="OUT_DIR",
                    help="then run pycolmap.triangulate_points and write the model to OUT_DIR")
     rg = p.add_mutually_exclusive_group()
     rg.add_argument("--resume", action="store_true", help="continue DB, skipping the pairs it holds")
-    rg.add_argument("--overwrite", action="store_true", help="replace an existing DB")
+    rg.add_argument("--overwrite", action="store_true",
+                    help="replace an existing DB (with --features database: its matches and two-view geometries "
+                         "only)")
     p.set_defaults(func=run)
 
 
@@ -88,12 +116,21 @@ def run(args, console: Console) -> int:
 
     search = SearchConfig(tol=args.tol, constraint=args.constraint)
     rule = AcceptRule(**({} if args.ratio is None else {"ratio": args.ratio}))
-    features = PRESETS["colmap"].replace(detector=args.detector, max_features=args.max_features)
+    if args.features == "database":
+        if args.detector is not None or args.max_features is not None:
+            raise UserError("--detector and --max-features apply to --features extract, not to --features database")
+        features = "database"
+    else:
+        features = PRESETS["collection"].replace(detector=args.detector or "sift",
+                                                 max_features=args.max_features or PRESETS["collection"].max_features)
+    if args.verify == "pairs" and args.loose_ratio is not None:
+        raise UserError("--loose-ratio applies to --verify tracks")
+    verify = args.verify if args.loose_ratio is None else colmap.TrackConsensus(loose=args.loose_ratio)
     t0 = time.perf_counter()
     try:
         report = colmap.match_model(
             args.model, args.image_dir, args.database, pairs=args.pairs, neighbors=args.neighbors,
-            features=features, depth_range=colmap_depth(args.depth_range), search=search, rule=rule,
+            features=features, depth_range=colmap_depth(args.depth_range), search=search, rule=rule, verify=verify,
             workers=args.workers, scheduler=args.scheduler, cache_dir=args.cache, resume=args.resume,
             overwrite=args.overwrite, progress=progress,
             log=lambda msg: print(f"{PROG}: {msg}", file=sys.stderr, flush=True))

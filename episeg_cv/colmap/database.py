@@ -29,7 +29,7 @@ except ImportError:  # pragma: no cover - not on Windows
     fcntl = None
 
 __all__ = ["check_database_path", "create_database", "check_resumable", "write_pair", "read_database_matches",
-           "database_lock", "RUN_TABLE", "read_run_record", "remove_stale_partials"]
+           "database_lock", "pair_unchanged", "RUN_TABLE", "read_run_record", "write_run_record", "remove_stale_partials"]
 
 #: The table holding the run record (settings and image hashes).
 RUN_TABLE = "episeg_run"
@@ -108,7 +108,8 @@ def remove_stale_partials(path: Path) -> list:
     return removed
 
 
-def _write_run_record(path: Path, record: dict) -> None:
+def write_run_record(path: Path, record: dict) -> None:
+    """Write (or replace) the run record of database ``path``."""
     con = sqlite3.connect(path)
     try:
         with con:
@@ -159,7 +160,7 @@ def create_database(path: Path, rec, views, store: FeatureStore, record: dict) -
             for v in views:
                 db.write_keypoints(v.image_id, (store.keypoints(v) + 0.5).astype(np.float32))
         db.close()
-        _write_run_record(tmp, record)
+        write_run_record(tmp, record)
         os.replace(tmp, path)
     finally:
         _remove_with_side_files(tmp)
@@ -201,7 +202,7 @@ def check_resumable(path: Path, views, record: dict, pair_list) -> set:
                          "pass --overwrite to start again")
     modified = sorted(n for n in want if have[n] != want[n])
     if modified:
-        raise ValueError(f"image {modified[0]!r} changed since database {str(path)!r} was written"
+        raise ValueError(f"image {modified[0]!r} (or its features) changed since database {str(path)!r} was written"
                          + (f" (and {len(modified) - 1} more)" if len(modified) > 1 else "")
                          + "; its matches would no longer fit: pass --overwrite to start again")
     pycolmap = require_pycolmap()
@@ -221,10 +222,33 @@ def check_resumable(path: Path, views, record: dict, pair_list) -> set:
         db.close()
 
 
-def write_pair(db, v1: View, v2: View, matches: np.ndarray, inliers: np.ndarray) -> None:
-    pycolmap = require_pycolmap()
+def _oriented(v1: View, v2: View, matches: np.ndarray, inliers: np.ndarray):
     if v1.image_id > v2.image_id:  # COLMAP stores (smaller id, larger id)
-        v1, v2, matches, inliers = v2, v1, matches[:, ::-1], inliers[:, ::-1]
+        return v2, v1, matches[:, ::-1], inliers[:, ::-1]
+    return v1, v2, matches, inliers
+
+
+def _sorted_rows(a) -> np.ndarray:
+    a = np.asarray(a, dtype=np.uint32).reshape(-1, 2)
+    return a[np.lexsort(a.T[::-1])]
+
+
+def pair_unchanged(db, v1: View, v2: View, matches: np.ndarray, inliers: np.ndarray) -> bool:
+    """Whether the open database ``db`` holds exactly these matches and inliers for the pair."""
+    v1, v2, matches, inliers = _oriented(v1, v2, matches, inliers)
+    a, b = v1.image_id, v2.image_id
+    if not (db.exists_matches(a, b) and db.exists_two_view_geometry(a, b)):
+        return False
+    have_m = _sorted_rows(db.read_matches(a, b))
+    have_i = _sorted_rows(db.read_two_view_geometry(a, b).inlier_matches)
+    return np.array_equal(have_m, _sorted_rows(matches)) and np.array_equal(have_i, _sorted_rows(inliers))
+
+
+def write_pair(db, v1: View, v2: View, matches: np.ndarray, inliers: np.ndarray, replace: bool = False) -> None:
+    """Write one pair's matches and CALIBRATED two-view geometry in one transaction (``replace``:
+    delete what the database holds for the pair first, in the same transaction)."""
+    pycolmap = require_pycolmap()
+    v1, v2, matches, inliers = _oriented(v1, v2, matches, inliers)
     g = v1.geometry_to(v2)
     tvg = pycolmap.TwoViewGeometry()
     tvg.config = pycolmap.TwoViewGeometryConfiguration.CALIBRATED
@@ -233,6 +257,11 @@ def write_pair(db, v1: View, v2: View, matches: np.ndarray, inliers: np.ndarray)
     tvg.cam2_from_cam1 = pycolmap.Rigid3d(pycolmap.Rotation3d(g.R), g.t)
     tvg.inlier_matches = np.ascontiguousarray(inliers, dtype=np.uint32)
     with interrupts_deferred(), pycolmap.DatabaseTransaction(db):
+        if replace:
+            if db.exists_matches(v1.image_id, v2.image_id):
+                db.delete_matches(v1.image_id, v2.image_id)
+            if db.exists_two_view_geometry(v1.image_id, v2.image_id):
+                db.delete_two_view_geometry(v1.image_id, v2.image_id)
         db.write_matches(v1.image_id, v2.image_id, np.ascontiguousarray(matches, dtype=np.uint32))
         db.write_two_view_geometry(v1.image_id, v2.image_id, tvg)
 

@@ -21,6 +21,8 @@ class PairJob:
 
     ``search`` (its constraint and tol) and ``rule`` are as in
     :func:`~episeg_cv.match_descriptors`; each view's ``depth_range`` bounds its own segments.
+    ``loose``: for the track consensus, the candidates with a ratio below it come back with
+    their ratio values (None: the matches of ``rule``).
     """
 
     index: int
@@ -30,6 +32,7 @@ class PairJob:
     search: SearchConfig = SearchConfig()
     rule: AcceptRule = AcceptRule()
     samples: int = 256
+    loose: float | None = None
 
 
 @dataclass(frozen=True)
@@ -41,6 +44,7 @@ class PairResult:
     summed search lengths in image 2, in pixels, of up to ``PairJob.samples``
     queries: the epipolar line, the segment, and the segment within view 1's
     depth range (all clipped to the image); ``samples`` is their number.
+    ``ratios`` (with ``PairJob.loose``): ``(K,)`` float64 ratio values of the inliers.
     """
 
     index: int
@@ -48,6 +52,7 @@ class PairResult:
     inliers: np.ndarray
     lengths: tuple
     samples: int
+    ratios: np.ndarray | None = None
 
 
 def match_pair(job: PairJob) -> PairResult:
@@ -56,16 +61,40 @@ def match_pair(job: PairJob) -> PairResult:
     The raw matches are :func:`~episeg_cv.match_descriptors` from view 1 to view 2 with
     view 1's depth range. The inliers are the raw matches that also satisfy
     the constraint from view 2 to view 1 (with view 2's depth range): a
-    match must be consistent with both cameras' depth ranges.
+    match must be consistent with both cameras' depth ranges. With
+    ``job.loose``, the raw matches are those of ratio ``job.loose`` (same rule
+    otherwise), and the inliers come back with their ratio values.
+    Keypoints without a pinhole position (NaN) are not matched.
     """
     _, q1, d1 = job.store.load(job.view1)
     _, q2, d2 = job.store.load(job.view2)
+    ok1, ok2 = np.isfinite(q1).all(axis=1), np.isfinite(q2).all(axis=1)
+    idx1 = idx2 = None
+    if not ok1.all():
+        idx1 = np.flatnonzero(ok1)
+        q1, d1 = q1[idx1], d1[idx1]
+    if not ok2.all():
+        idx2 = np.flatnonzero(ok2)
+        q2, d2 = q2[idx2], d2[idx2]
     g = job.view1.geometry_to(job.view2)
     inputs = guided.MatchInputs.check(d1, d2, q1, q2, job.store.norm)
-    pairs, _ = guided.match(inputs, g, job.search.replace(depth_range=job.view1.depth_range), job.rule)
+    search = job.search.replace(depth_range=job.view1.depth_range)
+    ratios = None
+    if job.loose is None:
+        pairs, _ = guided.match(inputs, g, search, job.rule)
+    else:
+        rule = job.rule.replace(ratio=job.loose)
+        i, j, r, mutual, _ = guided.nearest(inputs, g, search, rule, prefilter=True)
+        keep = (r < job.loose) & (mutual if (rule.mutual or rule.cross_check) else True)
+        pairs, ratios = np.column_stack([i[keep], j[keep]]).astype(np.intp), r[keep]
     keep = keep_mask(pairs[:, ::-1], q2, q1, g.inverse(), job.search.replace(depth_range=job.view2.depth_range))
     sample = q1[:: max(1, len(q1) // max(job.samples, 1))][: job.samples]
     full = g.segments(sample)
     ranged = g.segments(sample, job.view1.depth_range)
     lengths = tuple(float(np.sum(x)) for x in (full.line_length, full.length, ranged.length))
-    return PairResult(job.index, pairs.astype(np.uint32), pairs[keep].astype(np.uint32), lengths, len(sample))
+    if idx1 is not None and len(pairs):
+        pairs[:, 0] = idx1[pairs[:, 0]]
+    if idx2 is not None and len(pairs):
+        pairs[:, 1] = idx2[pairs[:, 1]]
+    return PairResult(job.index, pairs.astype(np.uint32), pairs[keep].astype(np.uint32), lengths, len(sample),
+                      None if ratios is None else ratios[keep].astype(np.float64))

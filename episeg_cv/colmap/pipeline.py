@@ -3,44 +3,54 @@
 COLMAP's "reconstruct from known poses" workflow is: extract features, match,
 verify, then ``point_triangulator``. Its matching ignores the poses. Here the
 poses drive the matching: :func:`match_model` reads a COLMAP model (or a
-poses JSON), computes features once per image (:class:`.store.FeatureStore`),
-matches every pair on its segments (:func:`.job.match_pair`, run by a
-:class:`.runner.Runner`), and writes a COLMAP database (:mod:`.database`)
-that ``colmap point_triangulator`` or :func:`pycolmap.triangulate_points`
-uses unchanged (:func:`triangulate`).
+poses JSON, or a Middlebury ``*_par.txt``), computes features once per image
+(:class:`.store.FeatureStore`) or reads COLMAP's from the database
+(:mod:`.dbfeatures`), matches every pair on its segments
+(:func:`.job.match_pair`, run by a :class:`.runner.Runner`), verifies the
+candidates of all pairs together with the known poses (:mod:`.consensus`),
+and writes a COLMAP database (:mod:`.database`) that ``colmap
+point_triangulator`` or :func:`pycolmap.triangulate_points` uses unchanged
+(:func:`~.triangulation.triangulate`).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import os
-import shutil
 import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
+from .. import __version__
 from .._validation import as_positive_int
 from ..features import PRESETS, FeatureConfig
-from ..matching.config import AcceptRule, SearchConfig, resolve
-from .. import __version__
-from .database import check_database_path, check_resumable, create_database, database_lock, write_pair
 from ..interrupts import terminate_as_interrupt
+from ..matching.config import AcceptRule, SearchConfig, resolve
+from .consensus import TrackConsensus, verify_tracks
+from .database import (check_database_path, check_resumable, create_database, database_lock, pair_unchanged,
+                       write_pair)
+from .dbfeatures import SOURCE, DatabaseFeatureStore, check_feature_database, database_views, prepare_feature_database
 from .job import PairJob, match_pair
 from .model import auto_depth_ranges, load_model, reconstruction_from_views
 from .pairs import exhaustive_pairs, index_pairs, neighbor_pairs, read_pairs
-from .poses import load_poses
+from .poses import is_par_file, load_par, load_poses
 from .runner import Runner
 from .store import FeatureStore
+from .triangulation import check_triangulation_folder, triangulate
 from .views import View, is_bounded, require_pycolmap
 
 __all__ = ["MatchReport", "match_model", "triangulate", "load_views", "check_triangulation_folder",
-           "EXHAUSTIVE_WARN"]
+           "EXHAUSTIVE_WARN", "VERIFY"]
 
 #: Above this many images, exhaustive pairing warns (pairs grow as n^2 / 2).
 EXHAUSTIVE_WARN = 300
+
+#: The values of ``verify``: the track consensus of the whole collection, or each pair on its own.
+VERIFY = ("tracks", "pairs")
 
 
 @dataclass
@@ -53,16 +63,25 @@ class MatchReport:
     n_images, n_pairs : int
         Images in the collection, pairs to match.
     n_skipped : int
-        Pairs already in the database (``resume``).
+        Pairs already in the database (``resume``); with the track consensus,
+        those whose written matches are the ones this run computes.
     n_pairs_done : int
-        Pairs matched and written in this run.
+        Pairs written in this run.
     n_matches, n_inliers : int
         Written in this run.
-    seconds_features, seconds_matching : float
-        Wall time of feature extraction (including cache hits) and matching with writing.
+    seconds_features, seconds_matching, seconds_verify : float
+        Wall time of feature extraction (including cache hits), of matching
+        with writing, and, within the latter, of the track consensus.
     pairs_per_second : float
+        Pairs matched per second of ``seconds_matching``.
     runner : str
         Where the jobs ran.
+    features : str
+        ``"extract"`` (detected here, :class:`~episeg_cv.features.FeatureConfig`)
+        or ``"database"`` (COLMAP's, read from the database).
+    verify : dict
+        ``{"mode": "tracks" | "pairs", ...}``; for the consensus, the counts of
+        :func:`~episeg_cv.colmap.verify_tracks` (``edges``, ``kept``, ``groups``, ...).
     depth_ranges : dict
         ``{name: (zmin, zmax)}`` used for each image.
     search_length : dict
@@ -81,8 +100,11 @@ class MatchReport:
     n_inliers: int = 0
     seconds_features: float = 0.0
     seconds_matching: float = 0.0
+    seconds_verify: float = 0.0
     pairs_per_second: float = 0.0
     runner: str = "this process"
+    features: str = "extract"
+    verify: dict = field(default_factory=dict)
     depth_ranges: dict = field(default_factory=dict)
     search_length: dict = field(default_factory=dict)
 
@@ -90,8 +112,12 @@ class MatchReport:
         lines = [f"database: {self.database}",
                  f"images: {self.n_images}, pairs: {self.n_pairs} ({self.n_skipped} already written, skipped)",
                  f"matches written: {self.n_matches}, inliers: {self.n_inliers}",
-                 f"features: {self.seconds_features:.1f} s; matching: {self.seconds_matching:.1f} s, "
-                 f"{self.pairs_per_second:.1f} pairs/s on {self.runner}"]
+                 f"features: {self.seconds_features:.1f} s ({'read from the database' if self.features == SOURCE else 'extracted'}); "
+                 f"matching: {self.seconds_matching:.1f} s, {self.pairs_per_second:.1f} pairs/s on {self.runner}"]
+        v = self.verify
+        if v.get("mode") == "tracks" and "edges" in v:
+            lines.append(f"track consensus: {v['kept']} of {v['edges']} candidate matches kept, {v['groups']} "
+                         f"tracks, {self.seconds_verify:.1f} s")
         bounded = sum(is_bounded(z) for z in self.depth_ranges.values())
         lines.append(f"depth ranges: {bounded} of {self.n_images} images bounded")
         L = self.search_length
@@ -102,13 +128,18 @@ class MatchReport:
         return "\n".join(lines)
 
 
-def load_views(model):
-    """``(views, reconstruction or None, source)`` from a model folder, a poses JSON or a list of View."""
+def load_views(model, image_dir=None):
+    """``(views, reconstruction or None)`` from a model folder, a poses JSON, a Middlebury ``*_par.txt``
+    (its image sizes are read from ``image_dir``) or a list of View."""
     if isinstance(model, (list, tuple)):
         if not model or not all(isinstance(v, View) for v in model):
             raise ValueError("model must be a non-empty list of View, a model folder or a poses JSON")
         return list(model), None
     path = Path(model)
+    if path.is_file() and is_par_file(path):
+        if image_dir is None:
+            raise ValueError(f"a Middlebury camera file ({path.name}) needs the image folder for the image sizes")
+        return load_par(path, image_dir), None
     if path.is_file():
         return load_poses(path), None
     return load_model(path)
@@ -151,20 +182,23 @@ def _resolve_depth(views, rec, depth_range, warn):
 
 
 def match_model(model, image_dir, database, *, pairs=None, neighbors=None,
-                features: FeatureConfig | str = "colmap", depth_range="auto", search: SearchConfig | None = None,
-                rule: AcceptRule | None = None, workers: int = 1, scheduler: str | None = None, cache_dir=None,
-                resume: bool = False, overwrite: bool = False, progress=None, log=None, **options) -> MatchReport:
+                features: FeatureConfig | str = "collection", depth_range="auto", search: SearchConfig | None = None,
+                rule: AcceptRule | None = None, verify: str | TrackConsensus = "tracks", workers: int = 1,
+                scheduler: str | None = None, cache_dir=None, resume: bool = False, overwrite: bool = False,
+                progress=None, log=None, **options) -> MatchReport:
     """Match every pair of a posed collection on its epipolar segments; write a COLMAP database.
 
     Parameters
     ----------
     model : str, Path or list of View
         A COLMAP sparse model folder (binary or text), a poses JSON
-        (:func:`load_poses`), or views.
+        (:func:`load_poses`), a Middlebury multi-view ``*_par.txt``
+        (:func:`~episeg_cv.colmap.load_par`), or views.
     image_dir : str or Path
         Folder of the images, named as in the model.
     database : str or Path
-        The COLMAP database to write.
+        The COLMAP database to write (with ``features="database"``: the one
+        holding COLMAP's features, written into).
     pairs : str, Path or sequence of (str, str), optional
         A pairs file (one ``name1 name2`` per line) or name pairs.
     neighbors : int, optional
@@ -175,7 +209,13 @@ def match_model(model, image_dir, database, *, pairs=None, neighbors=None,
     features : FeatureConfig or str, optional
         How features are detected: a :class:`~episeg_cv.features.FeatureConfig`
         or the name of a preset of :data:`episeg_cv.features.PRESETS` (default
-        ``"colmap"``: SIFT with COLMAP's threshold and RootSIFT, 8192 per image).
+        ``"collection"``: SIFT at contrast threshold 0.01, sigma 1.4, RootSIFT,
+        8192 per image); or ``"database"``: the keypoints and descriptors
+        that ``colmap feature_extractor`` or ``pycolmap.extract_features`` wrote
+        into ``database`` (:mod:`~episeg_cv.colmap.dbfeatures`). Its images are
+        found by name; matches are written with its ids. A database that holds
+        matches is refused unless ``resume`` or ``overwrite`` (which replaces
+        matches and two-view geometries, never features).
     depth_range : "auto", "none", None or (zmin, zmax), optional
         ``"auto"``: each image's range from the model's 3D points it sees
         (:func:`~episeg_cv.colmap.auto_depth_ranges`), or the poses JSON's
@@ -185,23 +225,37 @@ def match_model(model, image_dir, database, *, pairs=None, neighbors=None,
         the pinhole image). Its ``depth_range`` must be left at ``(0, inf)``:
         the collection's come from ``depth_range``, one per image.
     rule : AcceptRule, optional
-        The acceptance rule of each pair (see :func:`~episeg_cv.match_descriptors`).
+        The acceptance rule of each pair (see :func:`~episeg_cv.match_descriptors`);
+        with the track consensus, its ratio is the consensus's strict ratio.
+    verify : "tracks", "pairs" or TrackConsensus, optional
+        ``"tracks"`` (default): the candidates of every pair, up to a looser
+        ratio, verified together with the known poses before anything is
+        written (:func:`~episeg_cv.colmap.verify_tracks`; a
+        :class:`~episeg_cv.colmap.TrackConsensus` sets its parameters).
+        ``"pairs"``: each pair's matches under ``rule`` alone, written as they
+        come back.
     **options
         Fields of ``search`` or ``rule`` as keywords (``tol=4``, ``ratio=0.8``).
     workers : int, optional
-        Local processes for features and pairs (1: in this process).
+        Threads for features and pairs (1: none). The compiled kernels and
+        OpenCV release the GIL, so the threads run in parallel.
     scheduler : str, optional
-        A Dask scheduler address, or ``"local:N"`` for a new ``LocalCluster``
-        of N workers. The feature cache must be on a filesystem the workers
-        share, and episeg_cv installed on them. Local processes are spawned:
-        call from under ``if __name__ == "__main__":`` in a script.
+        A Dask scheduler address (``tcp://host:8786``: workers started with
+        ``dask worker``), or ``"local:N"`` for a new ``LocalCluster`` of N
+        worker processes, which end with this process. The feature cache must
+        be on a filesystem the workers share, and episeg_cv installed on them.
+        Local processes are spawned: call from under ``if __name__ ==
+        "__main__":`` in a script.
     cache_dir : str or Path, optional
         Feature cache; default ``<database>.features`` next to the database.
     resume, overwrite : bool, optional
-        Continue an existing database (skipping the pairs it holds), or replace it.
+        Continue an existing database (skipping the pairs it holds; with the
+        track consensus every pair's candidates are computed again, and the
+        pairs already written are kept when unchanged), or replace it.
     progress : callable, optional
         Called as ``progress(stage, done, total)`` after each image
-        (``stage="features"``) and each pair (``stage="pairs"``).
+        (``stage="features"``), each pair matched (``"pairs"``) and, with the
+        track consensus, each pair written (``"write"``).
     log : callable, optional
         Receives warnings (default: print to stderr).
 
@@ -227,13 +281,18 @@ def match_model(model, image_dir, database, *, pairs=None, neighbors=None,
         raise ValueError("search.depth_range must be (0, inf) for a collection; give depth_range= instead")
     if search.auto is not None:
         raise ValueError("tol='auto' is not supported for collections (yet): give a number of pixels")
-    features = _feature_config(features)
+    from_database = isinstance(features, str) and features == SOURCE
+    features = None if from_database else _feature_config(features)
+    consensus = _consensus_config(verify)
+    if consensus is not None and consensus.loose <= rule.ratio:
+        raise ValueError(f"the track consensus's loose ratio ({consensus.loose}) must be above the pair rule's "
+                         f"ratio ({rule.ratio}); use verify='pairs' for the pair rule alone")
     workers = as_positive_int(workers, "workers")
     image_dir = Path(image_dir)
     if not image_dir.is_dir():
         raise ValueError(f"image folder {str(image_dir)!r} does not exist")
 
-    views, rec = load_views(model)
+    views, rec = load_views(model, image_dir)
     if len(views) < 2:
         raise ValueError(f"the collection has {len(views)} image; matching needs at least two")
     missing = [v.name for v in views if not (image_dir / v.name).is_file()]
@@ -245,79 +304,167 @@ def match_model(model, image_dir, database, *, pairs=None, neighbors=None,
     if not pair_list:
         raise ValueError("no pair to match: the pairs file lists none" if pairs is not None else
                          "no pair to match: no two images overlap")
-    path = check_database_path(database, resume, overwrite)
+    if from_database:
+        path = check_feature_database(database, resume, overwrite)
+        views = database_views(path, views)
+    else:
+        path = check_database_path(database, resume, overwrite)
     cache = Path(cache_dir) if cache_dir is not None else path.with_name(path.name + ".features")
     if cache.exists() and not cache.is_dir():
         raise ValueError(f"feature cache {str(cache)!r} is a file, expected a folder")
-    store = FeatureStore(cache, image_dir, features)
-    if rec is None:
+    store = DatabaseFeatureStore(cache, image_dir, path) if from_database else FeatureStore(cache, image_dir, features)
+    if rec is None or from_database:
         rec = reconstruction_from_views(views)
-    report = MatchReport(path, len(views), len(pair_list),
+    report = MatchReport(path, len(views), len(pair_list), features=SOURCE if from_database else "extract",
+                         verify={"mode": "pairs" if consensus is None else "tracks"},
                          depth_ranges={v.name: v.depth_range for v in views})
 
     settings = {"search": {"tol": search.tol, "constraint": search.constraint}, "rule": dataclasses.asdict(rule),
-                "features": dataclasses.asdict(store.features),
+                "features": store.describe(),
+                "verify": {"mode": "pairs"} if consensus is None else {"mode": "tracks", **dataclasses.asdict(consensus)},
                 "depth_ranges": {v.name: [v.depth_range[0], str(v.depth_range[1])] for v in views}}
-    with terminate_as_interrupt():
+    run = _Run(path, rec, views, store, pair_list, settings, search, rule, consensus, resume, overwrite, report,
+               progress or (lambda stage, done, total: None), warn, from_database)
+    # BLAS on one thread: the per-pair products are small, and idle BLAS threads spinning on a busy
+    # machine made matching 3-5x slower (dinoSparseRing: 20 -> 95-108 pairs/s with one thread)
+    with terminate_as_interrupt(), threadpool_limits(1, user_api="blas"):
         runner = Runner(workers, scheduler)
         report.runner = runner.describe
         try:
-            _run(runner, path, rec, views, store, pair_list, settings, search, rule, resume, report, progress)
+            run(runner)
         finally:
             runner.close()
     return report
 
 
-def _run(runner, path, rec, views, store, pair_list, settings, search, rule, resume, report, progress):
-    """Features, then the database (new or resumed), then every pair, written as it comes back."""
-    pycolmap = require_pycolmap()
-    t0 = time.perf_counter()
-    tick = progress or (lambda stage, done, total: None)
-    digests = {}
-    for name, (n, digest) in runner.imap(_ensure_features, [(store, v) for v in views]):
-        digests[name] = digest
-        tick("features", len(digests), len(views))
-    report.seconds_features = time.perf_counter() - t0
-    record = {"settings": settings, "images": digests, "episeg_cv": __version__}
+@dataclass
+class _Run:
+    """One run of :func:`match_model`, its inputs checked: features, the database, matching, writing."""
 
-    if not resume:  # a new database, or (overwrite) one replaced atomically by the new one
-        create_database(path, rec, views, store, record)
-    with database_lock(path):
-        done = check_resumable(path, views, record, pair_list) if resume else set()
-        todo = [p for p in pair_list if p not in done]
-        report.n_skipped = len(pair_list) - len(todo)
-        jobs = [PairJob(k, views[i], views[j], store, search, rule) for k, (i, j) in enumerate(todo)]
+    path: Path
+    rec: object
+    views: list
+    store: FeatureStore
+    pair_list: list
+    settings: dict
+    search: SearchConfig
+    rule: AcceptRule
+    consensus: TrackConsensus | None
+    resume: bool
+    overwrite: bool
+    report: MatchReport
+    tick: object
+    warn: object
+    from_database: bool
+
+    def __call__(self, runner: Runner) -> None:
+        if self.from_database:  # the features are in the database: hold it from the first read
+            with database_lock(self.path):
+                record = self._features(map)  # read here, so that no worker opens the database
+                resume = prepare_feature_database(self.path, self.views, record, self.resume, self.overwrite,
+                                                  self.warn)
+                self._match(runner, record, resume)
+            return
+        record = self._features(runner.imap)
+        if not self.resume:  # a new database, or (overwrite) one replaced atomically by the new one
+            create_database(self.path, self.rec, self.views, self.store, record)
+        with database_lock(self.path):
+            self._match(runner, record, self.resume)
+
+    def _features(self, imap) -> dict:
+        """Every image's features into the cache; the run record (settings and image hashes)."""
+        t0 = time.perf_counter()
+        digests = {}
+        for name, (n, digest) in imap(_ensure_features, [(self.store, v) for v in self.views]):
+            digests[name] = digest
+            self.tick("features", len(digests), len(self.views))
+        self.report.seconds_features = time.perf_counter() - t0
+        return {"settings": self.settings, "images": digests, "episeg_cv": __version__}
+
+    def _jobs(self, pair_list, loose):
+        views, store = self.views, self.store
+        return [PairJob(k, views[i], views[j], store, self.search, self.rule, loose=loose)
+                for k, (i, j) in enumerate(pair_list)]
+
+    def _results(self, runner, jobs):
         # a few consecutive pairs per task: less scheduling and pickling, and they share images
         chunks = (jobs[k:k + runner.chunk] for k in range(0, len(jobs), runner.chunk))
+        return (r for chunk in runner.imap(_match_chunk, chunks) for r in chunk)
+
+    def _match(self, runner, record, resume) -> None:
+        pycolmap = require_pycolmap()
+        report, views = self.report, self.views
+        done = check_resumable(self.path, views, record, self.pair_list) if resume else set()
         t0 = time.perf_counter()
         lengths, samples = np.zeros(3), 0
-        db = pycolmap.Database.open(str(path))
-        try:
-            for res in (r for chunk in runner.imap(_match_chunk, chunks) for r in chunk):
-                i, j = todo[res.index]
-                write_pair(db, views[i], views[j], res.matches, res.inliers)
-                report.n_matches += len(res.matches)
-                report.n_inliers += len(res.inliers)
+        if self.consensus is None:  # each pair on its own: written as it comes back
+            todo = [p for p in self.pair_list if p not in done]
+            report.n_skipped = len(self.pair_list) - len(todo)
+            db = pycolmap.Database.open(str(self.path))
+            try:
+                for res in self._results(runner, self._jobs(todo, None)):
+                    i, j = todo[res.index]
+                    write_pair(db, views[i], views[j], res.matches, res.inliers)
+                    report.n_matches += len(res.matches)
+                    report.n_inliers += len(res.inliers)
+                    lengths += res.lengths
+                    samples += res.samples
+                    report.n_pairs_done += 1
+                    self.tick("pairs", report.n_pairs_done, len(todo))
+            finally:
+                db.close()
+        else:  # the candidates of every pair, then the consensus, then the writes
+            todo = self.pair_list
+            results = [None] * len(todo)
+            for n, res in enumerate(self._results(runner, self._jobs(todo, self.consensus.loose)), 1):
+                results[res.index] = res
                 lengths += res.lengths
                 samples += res.samples
-                report.n_pairs_done += 1
-                tick("pairs", report.n_pairs_done, len(todo))
-        finally:
-            db.close()
-    report.seconds_matching = time.perf_counter() - t0
-    report.pairs_per_second = report.n_pairs_done / report.seconds_matching if report.seconds_matching > 0 else 0.0
-    if samples:
-        report.search_length = dict(zip(("line", "segment", "segment_in_depth_range"), lengths / samples))
+                self.tick("pairs", n, len(todo))
+            t1 = time.perf_counter()
+            keep, stats = verify_tracks(views, [(i, j, r.inliers, r.ratios) for (i, j), r in zip(todo, results)],
+                                        lambda k: self.store.pinhole(views[k]), self.rule.ratio, self.search.tol,
+                                        self.consensus)
+            report.seconds_verify = time.perf_counter() - t1
+            report.verify.update(stats)
+            db = pycolmap.Database.open(str(self.path))
+            try:
+                for n, ((i, j), res, k) in enumerate(zip(todo, results, keep), 1):
+                    inliers = res.inliers[k]
+                    if (i, j) in done and pair_unchanged(db, views[i], views[j], res.matches, inliers):
+                        report.n_skipped += 1
+                    else:
+                        write_pair(db, views[i], views[j], res.matches, inliers, replace=(i, j) in done)
+                        report.n_matches += len(res.matches)
+                        report.n_inliers += len(inliers)
+                        report.n_pairs_done += 1
+                    self.tick("write", n, len(todo))
+            finally:
+                db.close()
+        report.seconds_matching = time.perf_counter() - t0
+        matched = len(todo) if self.consensus is not None else report.n_pairs_done
+        report.pairs_per_second = matched / report.seconds_matching if report.seconds_matching > 0 else 0.0
+        if samples:
+            report.search_length = dict(zip(("line", "segment", "segment_in_depth_range"), lengths / samples))
 
 
 def _feature_config(features) -> FeatureConfig:
     if isinstance(features, str):
         if features not in PRESETS:
-            raise ValueError(f"features must be a FeatureConfig or one of {tuple(PRESETS)}, got {features!r}")
+            raise ValueError(f"features must be a FeatureConfig, {SOURCE!r} or one of {tuple(PRESETS)}, "
+                             f"got {features!r}")
         return PRESETS[features]
     if not isinstance(features, FeatureConfig):
         raise TypeError(f"features must be a FeatureConfig or a preset name, got {type(features).__name__}")
     return features
+
+
+def _consensus_config(verify) -> TrackConsensus | None:
+    if isinstance(verify, TrackConsensus):
+        return verify
+    if isinstance(verify, str) and verify in VERIFY:
+        return TrackConsensus() if verify == "tracks" else None
+    raise ValueError(f"verify must be one of {VERIFY} or a TrackConsensus, got {verify!r}")
 
 
 def _match_chunk(jobs):
@@ -327,62 +474,3 @@ def _match_chunk(jobs):
 def _ensure_features(item):
     store, view = item
     return view.name, store.ensure(view)
-
-
-# --------------------------------------------------------------------------------------
-# Triangulation
-# --------------------------------------------------------------------------------------
-def triangulate(database, model, image_dir, output_dir, options=None):
-    """Run ``pycolmap.triangulate_points`` on a database from :func:`match_model`.
-
-    Parameters
-    ----------
-    database : str or Path
-    model : str, Path or list of View
-        The same model given to :func:`match_model` (its 3D points are cleared).
-    image_dir, output_dir : str or Path
-        ``output_dir`` is created; the triangulated model is written there (into a temporary
-        folder first, then moved file by file, so an interrupted run leaves no half-written model).
-        It may not be the input model's folder.
-    options : pycolmap.IncrementalPipelineOptions, optional
-        COLMAP's defaults otherwise. Note that they ignore two-view tracks
-        (``triangulation.ignore_two_view_tracks``): a point needs three views.
-
-    Returns
-    -------
-    pycolmap.Reconstruction
-    """
-    pycolmap = require_pycolmap()
-    out = check_triangulation_folder(output_dir, model)
-    views, rec = load_views(model)
-    if rec is None:
-        rec = reconstruction_from_views(views)
-    if options is None:
-        options = pycolmap.IncrementalPipelineOptions()
-    tmp = out.with_name(f".{out.name}.{os.getpid()}.partial")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
-    try:
-        with terminate_as_interrupt():
-            result = pycolmap.triangulate_points(rec, str(database), str(image_dir), str(tmp), options=options)
-            out.mkdir(parents=True, exist_ok=True)
-            for f in sorted(tmp.iterdir()):  # the model's files, each replaced at once
-                os.replace(f, out / f.name)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
-    return result
-
-
-def check_triangulation_folder(output_dir, model) -> Path:
-    """The folder a triangulated model goes to: not the input model's folder, and not a file."""
-    out = Path(output_dir)
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"triangulation folder {str(out)!r} is a file, expected a folder")
-    if not isinstance(model, (list, tuple)) and Path(model).is_dir() and out.is_dir() \
-            and os.path.samefile(out, model):
-        raise ValueError(f"triangulation folder {str(out)!r} is the input model's folder; its files would be "
-                         "replaced: give another folder")
-    parent = out.parent if str(out.parent) else Path(".")
-    if not parent.is_dir():
-        raise ValueError(f"triangulation folder {str(out)!r}: its parent folder does not exist")
-    return out

@@ -1,16 +1,18 @@
-"""The poses JSON: a posed collection for users without a COLMAP model."""
+"""Posed collections without a COLMAP model: the poses JSON, and Middlebury's ``*_par.txt``."""
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
 
+import numpy as np
+
 
 from .._validation import as_camera_matrix, as_image_size, short_repr
 from ..io.paths import input_file
 from .views import View, is_bounded
 
-__all__ = ["load_poses", "save_poses", "camera_of"]
+__all__ = ["load_poses", "save_poses", "camera_of", "load_par", "is_par_file"]
 
 
 def camera_of(K, size, dist):
@@ -95,3 +97,82 @@ def save_poses(path, views) -> None:
               "R": v.R.tolist(), "t": v.t.tolist(),
               **({"depth_range": list(v.depth_range)} if is_bounded(v.depth_range) else {})} for v in views]
     Path(path).write_text(json.dumps({"images": items}, indent=1), encoding="utf-8")
+
+
+def is_par_file(path) -> bool:
+    """Whether ``path`` names a Middlebury multi-view camera file (``*_par.txt``)."""
+    return Path(path).name.endswith("_par.txt")
+
+
+def _image_size(path: Path):
+    import cv2
+
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        return None
+    return int(image.shape[1]), int(image.shape[0])
+
+
+def load_par(path, image_dir) -> list[View]:
+    """Read a Middlebury multi-view camera file (``*_par.txt``, Seitz et al., CVPR 2006).
+
+    Format: an optional first line with the number of images, then one line per image::
+
+        name.png k11 k12 k13 k21 k22 k23 k31 k32 k33 r11 r12 r13 r21 r22 r23 r31 r32 r33 t1 t2 t3
+
+    The projection matrix is ``K [R | t]``, world-to-camera (``X_cam = R X + t``),
+    with the image origin at the top-left. ``K`` is taken as given, in episeg_cv's
+    (OpenCV's) pixel convention. The files carry no image size: it is read from
+    each image in ``image_dir``. Rotations with rounding errors are repaired (see
+    :func:`~episeg_cv._validation.as_rotation`). Image ids are 1, 2, ... in file
+    order; images with the same ``K`` and size share a camera.
+
+    Raises
+    ------
+    ValueError
+        An unreadable file, a line with the wrong number of values (with its
+        line number), a count that disagrees with the lines, a missing image,
+        or a bad value.
+    """
+    path, image_dir = Path(path), Path(image_dir)
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except (OSError, UnicodeDecodeError) as e:
+        raise ValueError(f"camera file {str(path)!r} cannot be read: {e}") from e
+    items, count = [], None
+    for lineno, raw in enumerate(lines, 1):
+        parts = raw.split()
+        if not parts or parts[0].startswith("#"):
+            continue
+        if count is None and not items and len(parts) == 1 and parts[0].isdigit():
+            count = int(parts[0])
+            continue
+        if len(parts) != 22:
+            raise ValueError(f"{path}:{lineno}: expected 'name' and 21 numbers (K, R, t), got {len(parts)} fields")
+        try:
+            values = np.array([float(v) for v in parts[1:]])
+        except ValueError as e:
+            raise ValueError(f"{path}:{lineno}: {e}") from e
+        items.append((lineno, parts[0], values))
+    if not items:
+        raise ValueError(f"camera file {str(path)!r} lists no image")
+    if count is not None and count != len(items):
+        raise ValueError(f"camera file {str(path)!r} announces {count} images but lists {len(items)}")
+    views, cameras, names = [], {}, set()
+    for k, (lineno, name, values) in enumerate(items):
+        where = f"{path}:{lineno} ({name!r})"
+        if name in names:
+            raise ValueError(f"{where}: image listed twice")
+        names.add(name)
+        size = _image_size(image_dir / name)
+        if size is None:
+            raise ValueError(f"{where}: image {str(image_dir / name)!r} is missing or cannot be read")
+        K = values[:9].reshape(3, 3)
+        try:
+            model, params = camera_of(K, size, ())
+            cameras.setdefault((params, size), len(cameras) + 1)
+            views.append(View(name, k + 1, cameras[(params, size)], K, values[9:18].reshape(3, 3), values[18:],
+                              size, model, params))
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"{where}: {e}") from e
+    return views

@@ -1,13 +1,33 @@
-"""Run jobs in this process, in local processes, or on a Dask cluster (it knows nothing of COLMAP)."""
+"""Run jobs in this process, in a pool of threads, or on a Dask cluster (it knows nothing of COLMAP).
+
+- ``workers=N``: N threads of this process. The matching kernels are compiled
+  with ``nogil`` and OpenCV releases the GIL while it detects, so the threads
+  run at the same time; they share the loaded kernels and the features in
+  memory, start in microseconds, and end with the process.
+- ``scheduler="local:N"``: a new ``distributed.LocalCluster`` of N worker
+  processes (one thread each). A worker plugin (:class:`._dask.WarmWorker`) prepares
+  every worker once, when it starts: one thread for OpenCV and BLAS, the
+  compiled kernels loaded, and a watchdog that ends the worker when this
+  process is gone (killed, say), so no worker outlives it.
+- ``scheduler=ADDRESS``: a running cluster (``dask scheduler`` and
+  ``dask worker ADDRESS`` on any machines); the same plugin warms its workers,
+  without the watchdog (they serve other clients too).
+
+In every worker, the features of the last images used stay in memory
+(:meth:`FeatureStore.load`), so the pairs of a task, which share an image,
+read it once.
+"""
 
 from __future__ import annotations
 
 import concurrent.futures as cf
-import multiprocessing
+import os
+import threading
+import time
 
 import cv2
 
-__all__ = ["Runner", "CONNECT_TIMEOUT"]
+__all__ = ["Runner", "CONNECT_TIMEOUT", "warm_up", "single_thread", "watch_parent"]
 
 #: Seconds to wait for a Dask scheduler before giving up.
 CONNECT_TIMEOUT = 10.0
@@ -15,7 +35,7 @@ CONNECT_TIMEOUT = 10.0
 _WORKER_LIMITED = False
 
 
-def _single_thread():
+def single_thread():
     """One thread per worker process, for OpenCV, BLAS and the compiled kernels (idle threads spin and steal the core).
 
     Without it, two workers on two cores ran slower than one process.
@@ -32,8 +52,48 @@ def _single_thread():
         _WORKER_LIMITED = True
 
 
+def warm_up() -> None:
+    """Load the compiled matching kernels (from numba's cache) with one tiny match."""
+    import numpy as np
+
+    from ..geometry import TwoViewGeometry
+    from ..matching import guided
+    from ..matching.config import AcceptRule, SearchConfig
+    from ..matching.filtering import keep_mask
+
+    K = np.array([[100.0, 0, 50], [0, 100.0, 50], [0, 0, 1]])
+    g = TwoViewGeometry(K, K, np.eye(3), [-1.0, 0, 0], image_size1=(100, 100), image_size2=(100, 100))
+    p = np.array([[60.0, 20.0], [40.0, 70.0]])
+    d = np.eye(2, 8, dtype=np.float32)
+    inputs = guided.MatchInputs.check(d, d, p, p, "l2")
+    pairs, _ = guided.match(inputs, g, SearchConfig(), AcceptRule())
+    guided.nearest(inputs, g, SearchConfig(), AcceptRule(), prefilter=True)
+    keep_mask(pairs, p, p, g, SearchConfig())
+
+
+def watch_parent(pid: int, interval: float = 1.0) -> None:
+    """End this process (``os._exit``) as soon as process ``pid`` no longer exists or we were re-parented."""
+    parent = os.getppid()
+
+    def watch():
+        while True:
+            time.sleep(interval)
+            gone = os.getppid() != parent
+            if not gone:
+                try:
+                    os.kill(pid, 0)
+                except ProcessLookupError:
+                    gone = True
+                except PermissionError:
+                    pass
+            if gone:
+                os._exit(1)
+
+    threading.Thread(target=watch, name="episeg-watchdog", daemon=True).start()
+
+
 def _run_in_worker(fn, item):
-    _single_thread()
+    single_thread()
     return fn(item)
 
 
@@ -48,6 +108,8 @@ class Runner:
         if scheduler is not None:
             try:
                 import distributed
+
+                from ._dask import WarmWorker
             except ImportError as e:
                 raise ImportError('scheduler needs Dask: pip install "episeg_cv[dask]"') from e
             if scheduler.startswith("local:"):
@@ -55,23 +117,24 @@ class Runner:
                 if n < 1:
                     raise ValueError(f"scheduler must be an address or local:N with N >= 1, got {scheduler!r}")
                 self._cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                                                         dashboard_address=None)
+                                                         host="127.0.0.1", dashboard_address="127.0.0.1:0")
                 self._client = distributed.Client(self._cluster)
+                self._client.register_plugin(WarmWorker(os.getpid()))  # with the watchdog
                 self.describe = f"a local Dask cluster of {n} workers"
             else:
                 try:
                     self._client = distributed.Client(scheduler, timeout=f"{CONNECT_TIMEOUT}s")
                 except (OSError, TimeoutError) as e:
                     raise ConnectionError(f"cannot reach the Dask scheduler at {scheduler!r}: {e}") from e
+                self._client.register_plugin(WarmWorker(None))
                 self.describe = f"the Dask cluster at {scheduler}"
             self.window = 4 * max(1, len(self._client.scheduler_info().get("workers", {})) or 1)
             self.chunk = 8
         elif workers > 1:
-            self._pool = cf.ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
-                                                initializer=_single_thread)
-            self.describe = f"{workers} local processes"
+            self._pool = cf.ThreadPoolExecutor(workers, thread_name_prefix="episeg-worker")
+            self.describe = f"{workers} threads"
             self.window = 4 * workers
-            self.chunk = 4
+            self.chunk = 2
         else:
             self.describe = "this process"
             self.window = self.chunk = 1
@@ -94,13 +157,17 @@ class Runner:
                     done.add(submit(nxt))
             return
         pending = {self._pool.submit(fn, it) for _, it in zip(range(self.window), items)}
-        while pending:
-            finished, pending = cf.wait(pending, return_when=cf.FIRST_COMPLETED)
-            for fut in finished:
-                yield fut.result()
-                nxt = next(items, None)
-                if nxt is not None:
-                    pending.add(self._pool.submit(fn, nxt))
+        try:
+            while pending:
+                finished, pending = cf.wait(pending, return_when=cf.FIRST_COMPLETED)
+                for fut in finished:
+                    yield fut.result()
+                    nxt = next(items, None)
+                    if nxt is not None:
+                        pending.add(self._pool.submit(fn, nxt))
+        finally:
+            for fut in pending:
+                fut.cancel()
 
     def close(self):
         if self._pool is not None:

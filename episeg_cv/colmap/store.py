@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import hashlib
 import logging
@@ -23,7 +24,7 @@ _log = logging.getLogger("episeg_cv")
 __all__ = ["FeatureStore", "FEATURES_VERSION"]
 
 #: Bumped whenever the features change for the same settings (stale cache files are recomputed).
-FEATURES_VERSION = 3
+FEATURES_VERSION = 4
 
 
 class FeatureStore:
@@ -42,13 +43,13 @@ class FeatureStore:
     folder : str or Path
     image_dir : str or Path
     features : FeatureConfig, optional
-        Default: the ``"colmap"`` preset (:data:`episeg_cv.features.PRESETS`).
+        Default: the ``"collection"`` preset (:data:`episeg_cv.features.PRESETS`).
     """
 
     def __init__(self, folder, image_dir, features: FeatureConfig | None = None):
         self.folder = Path(folder)
         self.image_dir = Path(image_dir)
-        self.features = PRESETS["colmap"] if features is None else features
+        self.features = PRESETS["collection"] if features is None else features
 
     @property
     def norm(self) -> str:
@@ -58,8 +59,10 @@ class FeatureStore:
     def path(self, view: View) -> Path:
         stem = re.sub(r"[^A-Za-z0-9._-]+", "_", view.name)[-80:]
         digest = hashlib.sha1(view.name.encode()).hexdigest()[:10]
-        f = self.features
-        return self.folder / f"{stem}.{digest}.{f.detector}{f.max_features}.npz"
+        return self.folder / f"{stem}.{digest}.{self._suffix()}.npz"
+
+    def _suffix(self) -> str:
+        return f"{self.features.detector}{self.features.max_features}"
 
     def digest(self, view: View) -> str:
         """SHA-256 of the image file's bytes: what its features (and a resumed database) depend on."""
@@ -73,7 +76,12 @@ class FeatureStore:
     def _signature(self, view: View, digest: str) -> str:
         f = self.features
         return repr((FEATURES_VERSION, digest, f.sift_contrast, f.detector, f.max_features, f.root_sift,
-                     view.camera_model, tuple(float(p) for p in view.camera_params), view.image_size))
+                     f.sift_sigma, f.fix_upscale_bias, view.camera_model,
+                     tuple(float(p) for p in view.camera_params), view.image_size))
+
+    def describe(self) -> dict:
+        """The settings of these features, for the run record of a database."""
+        return dataclasses.asdict(self.features)
 
     def ensure(self, view: View) -> tuple[int, str]:
         """Compute and store the features of ``view`` unless a fresh file exists.
@@ -85,14 +93,31 @@ class FeatureStore:
         """
         digest = self.digest(view)
         sig = self._signature(view, digest)
+        n = self._cached(view, sig)
+        if n is not None:
+            return n, digest
+        kp, des = self._detect(view)
+        ok = view.undistortable(kp)
+        if not ok.all():
+            _log.info("image %r: %d of %d keypoints lie where the camera's distortion cannot be inverted; left out",
+                      view.name, int((~ok).sum()), len(kp))
+            kp, des = kp[ok], des[ok]
+        self._save(view, kp, view.undistort(kp), des, sig)
+        return int(len(kp)), digest
+
+    def _cached(self, view: View, sig: str) -> int | None:
+        """The number of keypoints of a fresh cache file of ``view``, or None."""
         path = self.path(view)
         if path.is_file():
             try:
-                with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as z:
+                with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as z:  # (our handle: closed on errors)
                     if str(z["signature"]) == sig and _complete(z, self.features):
-                        return int(len(z["keypoints"])), digest
+                        return int(len(z["keypoints"]))
             except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile):
                 pass  # unreadable or stale: recompute
+        return None
+
+    def _detect(self, view: View) -> tuple[np.ndarray, np.ndarray]:
         image_path = self.image_dir / view.name
         image = cv2.imread(str(image_path), cv2.IMREAD_GRAYSCALE)
         if image is None:
@@ -100,24 +125,25 @@ class FeatureStore:
         if (image.shape[1], image.shape[0]) != tuple(view.image_size):
             raise ValueError(f"image {view.name!r} is {image.shape[1]}x{image.shape[0]}, but its camera says "
                              f"{view.image_size[0]}x{view.image_size[1]}")
-        kp, des = detect_features(image, self.features)
-        ok = view.undistortable(kp)
-        if not ok.all():
-            _log.info("image %r: %d of %d keypoints lie where the camera's distortion cannot be inverted; left out",
-                      view.name, int((~ok).sum()), len(kp))
-            kp, des = kp[ok], des[ok]
+        return detect_features(image, self.features)
+
+    def _save(self, view: View, kp, pinhole, des, sig: str) -> None:
+        path = self.path(view)
         output_folder(self.folder, "feature cache")
         tmp = path.with_name(f"{path.name}.{os.getpid()}.{threading.get_ident()}.tmp.npz")
         try:
-            np.savez(tmp, keypoints=kp, pinhole=view.undistort(kp), descriptors=des, signature=np.array(sig))
+            np.savez(tmp, keypoints=kp, pinhole=pinhole, descriptors=des, signature=np.array(sig))
             os.replace(tmp, path)
         finally:
             tmp.unlink(missing_ok=True)
-        return int(len(kp)), digest
 
     def keypoints(self, view: View) -> np.ndarray:
         """The raw ``(N, 2)`` keypoints of ``view`` (run :meth:`ensure` first)."""
         return self.load(view)[0]
+
+    def pinhole(self, view: View) -> np.ndarray:
+        """The ``(N, 2)`` keypoints of ``view`` in its pinhole image (NaN where there is none)."""
+        return self.load(view)[1]
 
     def load(self, view: View) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(keypoints, pinhole keypoints, descriptors)`` of ``view`` (run :meth:`ensure` first).

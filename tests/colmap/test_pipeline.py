@@ -3,6 +3,7 @@
 import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -39,9 +40,17 @@ def folder(collection, tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def reference(folder, tmp_path_factory):
-    """One full run with the defaults (segment, depth_range auto, 1 worker)."""
+    """One full run with the defaults (segment, depth_range auto, track consensus, 1 worker)."""
     db = tmp_path_factory.mktemp("ref") / "ref.db"
     report = colmap.match_model(folder["model"], folder["images"], db)
+    return db, report, colmap.read_database_matches(db)
+
+
+@pytest.fixture(scope="module")
+def reference_pairs(folder, tmp_path_factory):
+    """The same with each pair verified on its own (``verify="pairs"``)."""
+    db = tmp_path_factory.mktemp("ref_pairs") / "ref.db"
+    report = colmap.match_model(folder["model"], folder["images"], db, verify="pairs")
     return db, report, colmap.read_database_matches(db)
 
 
@@ -118,6 +127,35 @@ def test_triangulation_is_accurate(folder, reference, collection, tmp_path):
     assert (tmp_path / "tri" / "points3D.bin").is_file()
 
 
+def test_track_consensus_keeps_more_true_matches_than_the_pair_rule(folder, reference, reference_pairs,
+                                                                     collection, tmp_path):
+    """Against ground truth from the rendered depth: more correct inliers at about the same precision."""
+    db_t, rep_t, m_t = reference
+    db_p, rep_p, m_p = reference_pairs
+    assert rep_t.verify["mode"] == "tracks" and rep_t.verify["kept"] == rep_t.n_inliers
+    assert rep_p.verify == {"mode": "pairs"} and "track consensus" not in rep_p.summary()
+    assert "track consensus" in rep_t.summary()
+    views, rec = colmap.load_model(folder["model"])
+    index = {v.name: k for k, v in enumerate(views)}
+    store = FeatureStore(db_t.with_name(db_t.name + ".features"), folder["images"])
+    stats = {}
+    for label, matches in (("tracks", m_t), ("pairs", m_p)):
+        good = total = 0
+        for (a, b), (_, inl) in matches.items():
+            i, j = index[a], index[b]
+            p1, p2 = store.load(views[i])[1], store.load(views[j])[1]
+            gt = scenes.ground_truth_matches(p1, p2, collection.depths[i], collection.depths[j],
+                                             collection.geometry(i, j))
+            good += int(gt.is_correct(inl.astype(np.intp)).sum())
+            total += len(inl)
+        stats[label] = (good, good / total)
+    assert stats["tracks"][0] > stats["pairs"][0]
+    assert stats["tracks"][1] > stats["pairs"][1] - 0.03
+    rec_t = colmap.triangulate(db_t, folder["model"], folder["images"], tmp_path / "t")
+    rec_p = colmap.triangulate(db_p, folder["model"], folder["images"], tmp_path / "p")
+    assert rec_t.num_points3D() >= rec_p.num_points3D() and _accuracy(rec_t, collection) > 0.9
+
+
 def test_poses_json_gives_the_same_matches_as_the_model(folder, reference, tmp_path):
     db = tmp_path / "json.db"
     report = colmap.match_model(folder["poses"], folder["images"], db, depth_range="none")
@@ -156,50 +194,67 @@ def test_line_constraint_keeps_at_least_the_segment_matches_count(folder, tmp_pa
 # --------------------------------------------------------------------------------------
 # Resume, interruption, workers, Dask
 # --------------------------------------------------------------------------------------
-def test_resume_after_a_partial_run_gives_the_same_database(folder, reference, tmp_path):
-    db = tmp_path / "part.db"
+def test_resume_after_a_partial_run_gives_the_same_database(folder, reference, reference_pairs, tmp_path):
     pairs_file = tmp_path / "pairs.txt"
     pairs_file.write_text("view_000.png view_001.png\nview_002.png view_003.png\n")
-    part = colmap.match_model(folder["model"], folder["images"], db, pairs=pairs_file)
+    # pairs verified on their own: the pairs written are skipped
+    db = tmp_path / "part.db"
+    part = colmap.match_model(folder["model"], folder["images"], db, pairs=pairs_file, verify="pairs")
     assert part.n_pairs_done == 2
-    rest = colmap.match_model(folder["model"], folder["images"], db, resume=True)
+    rest = colmap.match_model(folder["model"], folder["images"], db, resume=True, verify="pairs")
     assert rest.n_skipped == 2 and rest.n_pairs_done == 4
+    _same(colmap.read_database_matches(db), reference_pairs[2])
+    again = colmap.match_model(folder["model"], folder["images"], db, resume=True, verify="pairs")
+    assert again.n_pairs_done == 0 and again.n_skipped == 6
+    # the track consensus sees every pair: the first two, verified on a smaller graph, are rewritten
+    db = tmp_path / "part_tracks.db"
+    colmap.match_model(folder["model"], folder["images"], db, pairs=pairs_file)
+    rest = colmap.match_model(folder["model"], folder["images"], db, resume=True)
+    assert rest.n_skipped + rest.n_pairs_done == 6 and rest.n_pairs_done >= 4
     _same(colmap.read_database_matches(db), reference[2])
     again = colmap.match_model(folder["model"], folder["images"], db, resume=True)
     assert again.n_pairs_done == 0 and again.n_skipped == 6
 
 
-def test_interrupted_run_leaves_a_usable_database(folder, reference, tmp_path):
+@pytest.mark.parametrize("verify, stage", [("pairs", "pairs"), ("tracks", "write"), ("tracks", "pairs")])
+def test_interrupted_run_leaves_a_usable_database(folder, reference, reference_pairs, tmp_path, verify, stage):
     db = tmp_path / "int.db"
 
-    def stop_after_two(stage, done, total):
-        if stage == "pairs" and done == 2:
+    def stop_after_two(s, done, total):
+        if s == stage and done == 2:
             raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
-        colmap.match_model(folder["model"], folder["images"], db, progress=stop_after_two)
-    assert len(colmap.read_database_matches(db)) == 2  # whole pairs only
-    rest = colmap.match_model(folder["model"], folder["images"], db, resume=True)
-    assert rest.n_skipped == 2
-    _same(colmap.read_database_matches(db), reference[2])
+        colmap.match_model(folder["model"], folder["images"], db, progress=stop_after_two, verify=verify)
+    written = colmap.read_database_matches(db)
+    # whole pairs only; with the consensus nothing is written while the pairs are matched
+    assert len(written) == (0 if (verify, stage) == ("tracks", "pairs") else 2)
+    rest = colmap.match_model(folder["model"], folder["images"], db, resume=True, verify=verify)
+    assert rest.n_skipped == len(written)
+    _same(colmap.read_database_matches(db), (reference_pairs if verify == "pairs" else reference)[2])
 
 
-def test_resume_redoes_a_pair_with_matches_but_no_geometry(folder, reference, tmp_path):
+@pytest.mark.parametrize("verify", ["pairs", "tracks"])
+def test_resume_redoes_a_pair_with_matches_but_no_geometry(folder, reference, reference_pairs, tmp_path, verify):
     """What an exception inside pycolmap's transaction (which commits on exit) would leave behind."""
     db_path = tmp_path / "orphan.db"
-    colmap.match_model(folder["model"], folder["images"], db_path, pairs=[("view_000.png", "view_001.png")])
+    colmap.match_model(folder["model"], folder["images"], db_path, pairs=[("view_000.png", "view_001.png")],
+                       verify=verify)
     db = pycolmap.Database.open(str(db_path))
     db.write_matches(1, 3, np.array([[0, 0], [1, 1]], dtype=np.uint32))  # no two-view geometry
     db.close()
-    rest = colmap.match_model(folder["model"], folder["images"], db_path, resume=True)
-    assert rest.n_skipped == 1 and rest.n_pairs_done == 5
-    _same(colmap.read_database_matches(db_path), reference[2])
+    rest = colmap.match_model(folder["model"], folder["images"], db_path, resume=True, verify=verify)
+    if verify == "pairs":
+        assert rest.n_skipped == 1 and rest.n_pairs_done == 5
+    else:
+        assert rest.n_skipped + rest.n_pairs_done == 6
+    _same(colmap.read_database_matches(db_path), (reference_pairs if verify == "pairs" else reference)[2])
 
 
 def test_two_workers_give_identical_matches(folder, reference, tmp_path):
     report = colmap.match_model(folder["model"], folder["images"], tmp_path / "w2.db", workers=2,
                                 cache_dir=tmp_path / "cache")
-    assert report.runner == "2 local processes"
+    assert report.runner == "2 threads"
     _same(colmap.read_database_matches(tmp_path / "w2.db"), reference[2])
 
 
@@ -210,10 +265,60 @@ def test_local_dask_cluster_gives_identical_matches(folder, reference, tmp_path)
     _same(colmap.read_database_matches(tmp_path / "dask.db"), reference[2])
 
 
+def test_dask_cluster_of_separate_worker_processes(folder, reference, tmp_path):
+    """The documented recipe, on loopback: ``dask scheduler`` and two ``dask worker ADDRESS`` processes.
+
+    Bounded: the scheduler stops after 120 s idle and the workers after 300 s whatever happens, and
+    every process started here is ended at the end of the test.
+    """
+    pytest.importorskip("distributed")
+    import json
+    import time
+
+    dask = shutil.which("dask", path=str(Path(sys.executable).parent)) or shutil.which("dask")
+    if dask is None:
+        pytest.skip("the dask command is not installed")
+    info = tmp_path / "scheduler.json"
+    procs = [subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
+                               "--dashboard-address", "127.0.0.1:0",
+                               "--scheduler-file", str(info), "--idle-timeout", "120s"],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    try:
+        for _ in range(600):
+            if info.is_file() and info.stat().st_size:
+                break
+            time.sleep(0.1)
+        address = json.loads(info.read_text())["address"]
+        assert address.startswith("tcp://127.0.0.1:")
+        for k in range(2):
+            procs.append(subprocess.Popen([dask, "worker", address, "--host", "127.0.0.1", "--nworkers", "1",
+                                           "--nthreads", "1", "--no-dashboard", "--lifetime", "300s",
+                                           "--death-timeout", "60s", "--name", f"w{k}"],
+                                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        import distributed
+
+        with distributed.Client(address, timeout="30s") as client:
+            client.wait_for_workers(2, timeout=120)
+        report = colmap.match_model(folder["model"], folder["images"], tmp_path / "cluster.db", scheduler=address,
+                                    cache_dir=tmp_path / "cache")
+        assert report.runner == f"the Dask cluster at {address}"
+        _same(colmap.read_database_matches(tmp_path / "cluster.db"), reference[2])
+        # the workers serve other clients too: they outlive the run
+        assert all(p.poll() is None for p in procs)
+    finally:
+        for p in procs[::-1]:
+            p.terminate()
+        for p in procs[::-1]:
+            try:
+                p.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                p.kill()
+
+
 def test_feature_cache_is_reused_and_refreshed(folder, tmp_path):
     shutil.copytree(folder["images"], tmp_path / "images")
     views, _ = colmap.load_model(folder["model"])
-    store = FeatureStore(tmp_path / "cache", tmp_path / "images", PRESETS["colmap"].replace(max_features=500))
+    store = FeatureStore(tmp_path / "cache", tmp_path / "images", PRESETS["collection"].replace(max_features=500))
     n = store.ensure(views[0])
     mtime = store.path(views[0]).stat().st_mtime_ns
     assert store.ensure(views[0]) == n and store.path(views[0]).stat().st_mtime_ns == mtime  # a cache hit
@@ -327,7 +432,8 @@ def test_resume_refuses_a_database_of_other_features(folder, reference, tmp_path
     db = tmp_path / "r.db"
     shutil.copy(reference[0], db)
     with pytest.raises(ValueError, match="features.max_features was 8192, now 100"):
-        colmap.match_model(folder["model"], folder["images"], db, resume=True, features=PRESETS["colmap"].replace(max_features=100))
+        colmap.match_model(folder["model"], folder["images"], db, resume=True,
+                           features=PRESETS["collection"].replace(max_features=100))
 
 
 def test_unreachable_scheduler_fails_fast(folder, tmp_path, monkeypatch):
@@ -386,6 +492,10 @@ def test_cli_colmap_and_triangulate(folder, tmp_path):
     (["--depth-range", "1"], "--depth-range"),
     (["--pairs", "PAIRS"], "unknown image 'ghost.png'"),
     (["--scheduler", "tcp://127.0.0.1:9"], "cannot reach the Dask scheduler"),
+    (["--features", "database"], "does not exist; --features database reads the features from it"),
+    (["--features", "database", "--detector", "orb"], "--detector and --max-features apply to --features extract"),
+    (["--verify", "pairs", "--loose-ratio", "0.8"], "--loose-ratio applies to --verify tracks"),
+    (["--ratio", "0.95"], "loose ratio (0.9) must be above the pair rule's ratio (0.95)"),
 ])
 def test_cli_errors_are_one_line(folder, tmp_path, extra, match):
     (tmp_path / "pairs.txt").write_text("view_000.png ghost.png\n")

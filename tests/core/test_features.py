@@ -41,3 +41,50 @@ def test_config_is_checked():
     with pytest.raises(TypeError, match="max_features"):
         FeatureConfig(max_features=2.5)
     assert FeatureConfig(detector="orb").norm == "hamming" and FeatureConfig().norm == "l2"
+
+
+def _blobs(size=(320, 240), seed=0):
+    """Gaussian blobs (sigma 3 px) at known sub-pixel centres on a grey background."""
+    rng = np.random.default_rng(seed)
+    w, h = size
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    centres = np.array([[cx + rng.uniform(-0.5, 0.5), cy + rng.uniform(-0.5, 0.5)]
+                        for cy in range(30, h - 20, 40) for cx in range(30, w - 20, 40)])
+    img = sum(np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / (2 * 3.0 ** 2)) for cx, cy in centres)
+    return np.clip(40 + 180 * img, 0, 255).astype(np.uint8), centres
+
+
+def test_upscale_bias_is_removed():
+    """OpenCV's SIFT reports blob centres 0.25 px right and down (its 2x upscale); the collection preset does not."""
+    image, centres = _blobs()
+    for name, expected in (("colmap", 0.25), ("collection", 0.0)):
+        kp, _ = detect_features(image, PRESETS[name])
+        err = kp[:, None] - centres[None]
+        nearest = np.argmin(np.linalg.norm(err, axis=2), axis=1)
+        e = kp - centres[nearest]
+        e = e[np.linalg.norm(e, axis=1) < 2]  # the blob keypoints (not those of the grid of blobs as a whole)
+        assert len(e) > 100
+        np.testing.assert_allclose(np.median(e, axis=0), [expected, expected], atol=0.03)
+
+
+def test_collection_preset_is_cv2_sift_with_its_settings(image):
+    import cv2
+
+    cfg = PRESETS["collection"].replace(max_features=500)
+    assert (cfg.sift_contrast, cfg.sift_sigma, cfg.root_sift, cfg.fix_upscale_bias) == (0.01, 1.4, True, True)
+    kp, des = detect_features(image, cfg)
+    ref_kp, ref_des = cv2.SIFT_create(nfeatures=500, contrastThreshold=0.01, sigma=1.4).detectAndCompute(image, None)
+    order = np.argsort([-k.response for k in ref_kp], kind="stable")[:500]
+    np.testing.assert_allclose(kp, cv2.KeyPoint_convert(ref_kp)[order] - 0.25, atol=1e-4)
+    ref = ref_des[order] / ref_des[order].sum(axis=1, keepdims=True)
+    np.testing.assert_allclose(des, np.sqrt(ref), atol=1e-6)
+    # more keypoints than COLMAP's threshold finds, on the same image
+    assert len(detect_features(image, PRESETS["collection"])[0]) > len(detect_features(image, PRESETS["colmap"])[0])
+
+
+@pytest.mark.parametrize("kwargs, match", [({"sift_sigma": 0}, "sift_sigma"), ({"sift_contrast": -0.1}, "sift_contrast"),
+                                           ({"sift_sigma": float("inf")}, "sift_sigma"),
+                                           ({"sift_contrast": "0.01"}, "sift_contrast")])
+def test_sift_settings_are_checked(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        FeatureConfig(**kwargs)

@@ -1,0 +1,274 @@
+"""The compiled loop of the track consensus (:mod:`.consensus`): union-find, then RANSAC-style groups.
+
+Every array is checked and laid out by :func:`.consensus.verify_tracks`; these
+functions trust them. Nodes are (image, keypoint) observations, ``0 .. n-1``;
+edges are candidate matches between two nodes with their ratio values.
+"""
+
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+
+
+@nb.njit(cache=True, nogil=True)
+def _find(parent, x):
+    while parent[x] != x:
+        parent[x] = parent[parent[x]]  # path halving
+        x = parent[x]
+    return x
+
+
+@nb.njit(cache=True, nogil=True)
+def _triangulate(P, node_image, node_xy, nodes, count, out):
+    """Least-squares point of ``count`` observations (linear, inhomogeneous, rows normalised).
+
+    Each observation gives two rows ``x P3 - P1`` and ``y P3 - P2`` of ``A [X; 1] = 0``,
+    scaled to unit norm; ``X`` solves the 3x3 normal equations. False when they are
+    singular (parallel rays).
+    """
+    n00 = n01 = n02 = n11 = n12 = n22 = 0.0
+    b0 = b1 = b2 = 0.0
+    for q in range(count):
+        v = nodes[q]
+        k = node_image[v]
+        for r in range(2):
+            c = node_xy[v, r]
+            a0 = c * P[k, 2, 0] - P[k, r, 0]
+            a1 = c * P[k, 2, 1] - P[k, r, 1]
+            a2 = c * P[k, 2, 2] - P[k, r, 2]
+            a3 = c * P[k, 2, 3] - P[k, r, 3]
+            nrm = np.sqrt(a0 * a0 + a1 * a1 + a2 * a2 + a3 * a3)
+            if nrm == 0.0:
+                continue
+            a0 /= nrm
+            a1 /= nrm
+            a2 /= nrm
+            a3 /= nrm
+            n00 += a0 * a0
+            n01 += a0 * a1
+            n02 += a0 * a2
+            n11 += a1 * a1
+            n12 += a1 * a2
+            n22 += a2 * a2
+            b0 -= a0 * a3
+            b1 -= a1 * a3
+            b2 -= a2 * a3
+    c00 = n11 * n22 - n12 * n12
+    c01 = n02 * n12 - n01 * n22
+    c02 = n01 * n12 - n02 * n11
+    det = n00 * c00 + n01 * c01 + n02 * c02
+    scale = (n00 + n11 + n22) / 3.0
+    if not (abs(det) > 1e-12 * scale * scale * scale):
+        return False
+    c11 = n00 * n22 - n02 * n02
+    c12 = n01 * n02 - n00 * n12
+    c22 = n00 * n11 - n01 * n01
+    out[0] = (c00 * b0 + c01 * b1 + c02 * b2) / det
+    out[1] = (c01 * b0 + c11 * b1 + c12 * b2) / det
+    out[2] = (c02 * b0 + c12 * b1 + c22 * b2) / det
+    return True
+
+
+@nb.njit(cache=True, nogil=True)
+def _inliers(P, node_image, node_xy, X, cand, n_cand, tau, best_err, best_node, touched, out):
+    """The observations among ``cand`` that reproject within ``tau`` px of ``X`` (in front of the
+    camera), one per image: the closest. Written to ``out``; returns their number."""
+    n_touched = 0
+    for q in range(n_cand):
+        v = cand[q]
+        k = node_image[v]
+        h0 = P[k, 0, 0] * X[0] + P[k, 0, 1] * X[1] + P[k, 0, 2] * X[2] + P[k, 0, 3]
+        h1 = P[k, 1, 0] * X[0] + P[k, 1, 1] * X[1] + P[k, 1, 2] * X[2] + P[k, 1, 3]
+        h2 = P[k, 2, 0] * X[0] + P[k, 2, 1] * X[1] + P[k, 2, 2] * X[2] + P[k, 2, 3]
+        if not (h2 > 0.0):
+            continue
+        dx = h0 / h2 - node_xy[v, 0]
+        dy = h1 / h2 - node_xy[v, 1]
+        err = np.sqrt(dx * dx + dy * dy)
+        if not (err <= tau):
+            continue
+        if best_node[k] < 0:
+            touched[n_touched] = k
+            n_touched += 1
+            best_err[k] = err
+            best_node[k] = v
+        elif err < best_err[k]:
+            best_err[k] = err
+            best_node[k] = v
+    for q in range(n_touched):
+        k = touched[q]
+        out[q] = best_node[k]
+        best_node[k] = -1
+        best_err[k] = np.inf
+    return n_touched
+
+
+@nb.njit(cache=True, nogil=True)
+def _ball(a, b, adj_ptr, adj, alive, hops, limit, stamp, mark, queue, depth):
+    """Alive nodes within ``hops`` edges of ``a`` or ``b`` (breadth first, at most ``limit``), in ``queue``."""
+    head = 0
+    tail = 0
+    for s in (a, b):
+        if mark[s] != stamp:
+            mark[s] = stamp
+            queue[tail] = s
+            depth[tail] = 0
+            tail += 1
+    while head < tail and tail < limit:
+        v = queue[head]
+        d = depth[head]
+        head += 1
+        if d >= hops:
+            continue
+        for p in range(adj_ptr[v], adj_ptr[v + 1]):
+            w = adj[p]
+            if mark[w] != stamp and alive[w]:
+                mark[w] = stamp
+                queue[tail] = w
+                depth[tail] = d + 1
+                tail += 1
+                if tail >= limit:
+                    break
+    return tail
+
+
+@nb.njit(cache=True, nogil=True)
+def consensus(P, node_image, node_xy, eu, ev, er, n_images, tau, max_seeds, max_component, hops):
+    """Consensus groups of the observations: ``(group (n,) int64, group_views (G,) int64, stats (4,) int64)``.
+
+    ``group[v]`` is -1 for an observation in no group. ``stats``: components,
+    groups, components above ``max_component`` nodes, seeds that found no
+    support. See :func:`.consensus.verify_tracks` for the algorithm.
+    """
+    n = node_image.shape[0]
+    m = eu.shape[0]
+    parent = np.arange(n)
+    for e in range(m):
+        ra = _find(parent, eu[e])
+        rb = _find(parent, ev[e])
+        if ra != rb:
+            parent[ra] = rb
+    root = np.empty(n, np.int64)
+    for v in range(n):
+        root[v] = _find(parent, v)
+    # adjacency (CSR), for the neighbourhoods of big components
+    deg = np.zeros(n + 1, np.int64)
+    for e in range(m):
+        deg[eu[e] + 1] += 1
+        deg[ev[e] + 1] += 1
+    adj_ptr = np.cumsum(deg)
+    fill = adj_ptr[:-1].copy()
+    adj = np.empty(2 * m, np.int64)
+    for e in range(m):
+        adj[fill[eu[e]]] = ev[e]
+        fill[eu[e]] += 1
+        adj[fill[ev[e]]] = eu[e]
+        fill[ev[e]] += 1
+    # nodes and edges by component; edges by ratio within a component (stable: ties keep input order)
+    node_order = np.argsort(root, kind="mergesort")
+    by_ratio = np.argsort(er, kind="mergesort")
+    edge_root = np.empty(m, np.int64)
+    for q in range(m):
+        edge_root[q] = root[eu[by_ratio[q]]]
+    edge_order = by_ratio[np.argsort(edge_root, kind="mergesort")]
+
+    group = np.full(n, -1, np.int64)
+    group_views = np.zeros(n + 1, np.int64)
+    alive = np.ones(n, np.bool_)
+    dead = np.zeros(m, np.bool_)
+    best_err = np.full(n_images, np.inf)
+    best_node = np.full(n_images, -1, np.int64)
+    touched = np.empty(n_images, np.int64)
+    inl = np.empty(n_images, np.int64)
+    best_inl = np.empty(n_images, np.int64)
+    again = np.empty(n_images, np.int64)
+    seeds = np.empty(max_seeds, np.int64)
+    cand = np.empty(n, np.int64)
+    mark = np.zeros(n, np.int64)
+    depth = np.empty(n, np.int64)
+    X = np.empty(3)
+    pair = np.empty(2, np.int64)
+    stamp = 0
+    n_groups = 0
+    n_components = 0
+    n_big = 0
+    n_unsupported = 0
+
+    p_node = 0
+    p_edge = 0
+    while p_node < n:
+        r = root[node_order[p_node]]
+        q_node = p_node
+        while q_node < n and root[node_order[q_node]] == r:
+            q_node += 1
+        q_edge = p_edge
+        while q_edge < m and root[eu[edge_order[q_edge]]] == r:
+            q_edge += 1
+        nc = q_node - p_node
+        n_components += 1
+        big = nc > max_component
+        if big:
+            n_big += 1
+        first = p_edge  # edges before it have a removed or dead end
+        while True:
+            n_seeds = 0
+            e = first
+            while e < q_edge and n_seeds < max_seeds:
+                k = edge_order[e]
+                if alive[eu[k]] and alive[ev[k]] and not dead[k]:
+                    if n_seeds == 0:
+                        first = e
+                    seeds[n_seeds] = k
+                    n_seeds += 1
+                e += 1
+            if n_seeds == 0:
+                break
+            if not big:  # every alive node of the component
+                n_cand = 0
+                for q in range(p_node, q_node):
+                    v = node_order[q]
+                    if alive[v]:
+                        cand[n_cand] = v
+                        n_cand += 1
+            best_count = 0
+            best_seed = -1
+            for s in range(n_seeds):
+                k = seeds[s]
+                if big:
+                    stamp += 1
+                    n_cand = _ball(eu[k], ev[k], adj_ptr, adj, alive, hops, max_component, stamp, mark, cand, depth)
+                pair[0] = eu[k]
+                pair[1] = ev[k]
+                if not _triangulate(P, node_image, node_xy, pair, 2, X):
+                    continue
+                c = _inliers(P, node_image, node_xy, X, cand, n_cand, tau, best_err, best_node, touched, inl)
+                if c > best_count:
+                    best_count = c
+                    best_seed = k
+                    best_inl[:c] = inl[:c]
+            if best_count < 2:
+                for s in range(n_seeds):
+                    dead[seeds[s]] = True
+                n_unsupported += n_seeds
+                continue
+            count = best_count
+            if _triangulate(P, node_image, node_xy, best_inl, best_count, X):
+                if big:
+                    stamp += 1
+                    n_cand = _ball(eu[best_seed], ev[best_seed], adj_ptr, adj, alive, hops, max_component, stamp,
+                                   mark, cand, depth)
+                c = _inliers(P, node_image, node_xy, X, cand, n_cand, tau, best_err, best_node, touched, again)
+                if c >= 2:
+                    best_inl[:c] = again[:c]
+                    count = c
+            for q in range(count):
+                v = best_inl[q]
+                group[v] = n_groups
+                alive[v] = False
+            group_views[n_groups] = count  # one observation per image
+            n_groups += 1
+        p_node = q_node
+        p_edge = q_edge
+    stats = np.array([n_components, n_groups, n_big, n_unsupported], np.int64)
+    return group, group_views[:n_groups].copy(), stats

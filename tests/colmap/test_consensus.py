@@ -1,0 +1,178 @@
+"""The track consensus (issue 14): candidate matches of a collection verified with the known poses.
+
+Needs no pycolmap: views, candidates and keypoints are built here.
+"""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+
+from episeg_cv import scenes
+from episeg_cv.colmap import TrackConsensus, View, verify_tracks
+from episeg_cv.colmap.consensus import projection_matrices
+
+K = np.array([[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]])
+SIZE = (640, 480)
+
+
+def _ring(n, radius=4.0):
+    """n cameras on a circle around the origin, all looking at it."""
+    views = []
+    for k in range(n):
+        a = 2 * np.pi * k / n * 0.25  # a quarter circle: every camera sees the centre
+        R, t = scenes.look_at([radius * np.sin(a), 0.3 * k, -radius * np.cos(a)], [0, 0, 0])
+        views.append(View(f"v{k}.png", k + 1, 1, K, R, t, SIZE))
+    return views
+
+
+def _project(views, X):
+    """(n_views, n_points, 2) pixels."""
+    return np.stack([(X @ v.R.T + v.t) @ K.T for v in views])[..., :2] / \
+        np.stack([(X @ v.R.T + v.t)[:, 2:] for v in views])
+
+
+def _scene(n_views=4, n_points=30, seed=0):
+    rng = np.random.default_rng(seed)
+    views = _ring(n_views)
+    X = rng.uniform(-0.5, 0.5, (n_points, 3))
+    kp = _project(views, X)  # keypoint p of view k is the projection of point p
+    return views, X, kp
+
+
+def _all_pairs(n_views, n_points, ratio=0.5, drop=()):
+    """Every true match of every pair, ratio ``ratio``."""
+    out = []
+    for i in range(n_views):
+        for j in range(i + 1, n_views):
+            idx = np.array([p for p in range(n_points) if (i, j, p) not in drop], dtype=np.int64)
+            out.append((i, j, np.column_stack([idx, idx]), np.full(len(idx), ratio)))
+    return out
+
+
+# --------------------------------------------------------------------------------------
+# Hand-made cases
+# --------------------------------------------------------------------------------------
+def test_true_tracks_are_kept_at_any_ratio_with_three_views():
+    views, _, kp = _scene()
+    cands = _all_pairs(4, 30, ratio=0.85)  # loose, but every track spans 4 views
+    keep, stats = verify_tracks(views, cands, lambda k: kp[k], strict=0.68, tau=2.0)
+    assert all(k.all() for k in keep)
+    assert stats["groups"] == 30 and stats["components"] == 30 and stats["kept"] == stats["edges"] == 6 * 30
+
+
+def test_loose_edges_of_two_views_need_a_third():
+    views, _, kp = _scene(n_views=2)
+    strict = (0, 1, np.array([[0, 0], [1, 1]]), np.array([0.5, 0.6]))
+    keep, _ = verify_tracks(views, [strict], lambda k: kp[k], strict=0.68, tau=2.0)
+    assert keep[0].tolist() == [True, True]
+    loose = (0, 1, np.array([[0, 0], [1, 1]]), np.array([0.7, 0.89]))
+    keep, _ = verify_tracks(views, [loose], lambda k: kp[k], strict=0.68, tau=2.0)
+    assert keep[0].tolist() == [False, False]
+    keep, _ = verify_tracks(views, [loose], lambda k: kp[k], strict=0.68, tau=2.0,
+                            config=TrackConsensus(min_views=2))
+    assert keep[0].tolist() == [True, True]
+
+
+def test_a_false_edge_between_two_tracks_is_dropped_and_the_tracks_survive():
+    views, _, kp = _scene(n_views=4, n_points=2)
+    cands = _all_pairs(4, 2, ratio=0.5)
+    # one false, even strict, match: point 0 in view 0 with point 1 in view 3
+    i, j, p, r = cands[2]  # the pair (0, 3)
+    assert (i, j) == (0, 3)
+    cands[2] = (i, j, np.vstack([p, [[0, 1]]]), np.append(r, 0.3))
+    keep, stats = verify_tracks(views, cands, lambda k: kp[k], strict=0.68, tau=2.0)
+    assert keep[2].tolist() == [True, True, False]  # the lowest ratio of all, still contradicted by the tracks
+    assert all(k.all() for q, k in enumerate(keep) if q != 2)
+    assert stats["components"] == 1 and stats["groups"] == 2
+
+
+def test_a_keypoint_off_its_track_is_left_out():
+    views, _, kp = _scene(n_views=4, n_points=1)
+    kp = kp.copy()
+    kp[3, 0] += [6.0, -4.0]  # view 3 observes the point 7 px off: beyond tau
+    keep, _ = verify_tracks(views, _all_pairs(4, 1, ratio=0.8), lambda k: kp[k], strict=0.68, tau=2.0)
+    pairs = [(i, j) for i in range(4) for j in range(i + 1, 4)]
+    assert {pq: bool(k[0]) for pq, k in zip(pairs, keep)} == {
+        (0, 1): True, (0, 2): True, (1, 2): True, (0, 3): False, (1, 3): False, (2, 3): False}
+    keep, _ = verify_tracks(views, _all_pairs(4, 1, ratio=0.8), lambda k: kp[k], strict=0.68, tau=8.0)
+    assert all(k.all() for k in keep)
+
+
+def test_points_behind_a_camera_do_not_count():
+    views, _, kp = _scene(n_views=3, n_points=1)
+    behind = views[2].R.T @ (np.array([0, 0, -2.0]) - views[2].t)  # 2 m behind camera 2, on its axis
+    kp = kp.copy()
+    for k in range(2):
+        Xc = views[k].R @ behind + views[k].t
+        kp[k, 0] = (K @ Xc)[:2] / Xc[2]
+    kp[2, 0] = K[:2, 2]  # where the point's mirror image would project
+    keep, _ = verify_tracks(views, _all_pairs(3, 1, ratio=0.8), lambda k: kp[k], strict=0.68, tau=2.0)
+    assert keep[0].tolist() == [False] and not keep[1].any() and not keep[2].any()
+
+
+def test_empty_candidates_and_empty_pairs():
+    views, _, kp = _scene(n_views=3)
+    keep, stats = verify_tracks(views, [], lambda k: kp[k], strict=0.68, tau=2.0)
+    assert keep == [] and stats["edges"] == 0
+    empty = (0, 1, np.zeros((0, 2), np.int64), np.zeros(0))
+    keep, stats = verify_tracks(views, [empty, _all_pairs(3, 30)[2]], lambda k: kp[k], strict=0.68, tau=2.0)
+    assert keep[0].shape == (0,) and keep[1].all() and stats["edges"] == 30
+
+
+def test_big_components_are_verified_locally():
+    """A component above max_component is checked around each seed, not left unverified."""
+    views, _, kp = _scene(n_views=5, n_points=40, seed=3)
+    cands = _all_pairs(5, 40, ratio=0.5)
+    # chain every track to the next one with a false loose edge: one component of 200 observations
+    i, j, p, r = cands[0]
+    chain = np.column_stack([np.arange(39), np.arange(1, 40)])
+    cands[0] = (i, j, np.vstack([p, chain]), np.append(r, np.full(39, 0.85)))
+    full, s_full = verify_tracks(views, cands, lambda k: kp[k], strict=0.68, tau=2.0)
+    local, s_local = verify_tracks(views, cands, lambda k: kp[k], strict=0.68, tau=2.0,
+                                   config=TrackConsensus(max_component=20))
+    assert s_full["components"] == 1 and s_full["big_components"] == 0 and s_local["big_components"] == 1
+    for keep in (full, local):
+        assert keep[0][:40].all() and not keep[0][40:].any()  # the true matches, not the chain
+        assert all(k.all() for k in keep[1:])
+
+
+def test_projection_matrices_are_normalised():
+    views = _ring(4, radius=1000.0)
+    P = projection_matrices(views)
+    X = np.array([[0.3, -0.2, 0.1]])
+    centers = np.array([v.center for v in views])
+    c0, s = centers.mean(0), np.median(np.linalg.norm(centers - centers.mean(0), axis=1))
+    Y = (X - c0) / s
+    for v, Pk in zip(views, P):
+        h = Pk @ np.append(Y[0], 1.0)
+        Xc = v.R @ X[0] + v.t
+        np.testing.assert_allclose(h[:2] / h[2], (K @ Xc)[:2] / Xc[2], rtol=1e-9)
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"loose": 1.5}, "loose"), ({"loose": 0}, "loose"), ({"min_views": 1}, "min_views"),
+    ({"tau": -1.0}, "tau"), ({"tau": float("nan")}, "tau"), ({"max_seeds": 0}, "max_seeds"),
+    ({"max_component": 1}, "max_component"), ({"hops": 0}, "hops"), ({"min_views": 2.5}, "min_views"),
+])
+def test_config_is_checked(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        TrackConsensus(**kwargs)
+
+
+# --------------------------------------------------------------------------------------
+# Properties
+# --------------------------------------------------------------------------------------
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 10_000), n_views=st.integers(3, 6), noise=st.floats(0.0, 0.8))
+def test_consistent_tracks_are_kept_and_the_order_of_pairs_does_not_matter(seed, n_views, noise):
+    views, _, kp = _scene(n_views=n_views, n_points=12, seed=seed)
+    rng = np.random.default_rng(seed)
+    kp = kp + rng.uniform(-noise, noise, kp.shape)  # within tau / 2 of the projections
+    cands = _all_pairs(n_views, 12, ratio=0.85)
+    cands = [(i, j, p, r + rng.uniform(-0.1, 0.04, len(r))) for i, j, p, r in cands]  # distinct ratios
+    keep, _ = verify_tracks(views, cands, lambda k: kp[k], strict=0.68, tau=2.0)
+    assert all(k.all() for k in keep)
+    order = rng.permutation(len(cands))
+    shuffled, _ = verify_tracks(views, [cands[q] for q in order], lambda k: kp[k], strict=0.68, tau=2.0)
+    for q, k in zip(order, shuffled):
+        np.testing.assert_array_equal(k, keep[q])
