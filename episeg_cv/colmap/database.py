@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import shutil
 import sqlite3
 from pathlib import Path
 
@@ -90,7 +91,8 @@ def _remove_with_side_files(path: Path) -> None:
 
 def remove_stale_partials(path: Path) -> list:
     """Remove what runs killed while preparing ``path`` left behind (``.NAME.PID.partial`` and its
-    ``-wal``/``-shm``/``-journal`` files, when process PID no longer exists); the paths removed."""
+    ``-wal``/``-shm``/``-journal`` files, or a partial folder, when process PID no longer exists); the
+    paths removed."""
     removed = []
     for tmp in path.parent.glob(f".{path.name}.*.partial"):
         pid = tmp.name[len(path.name) + 2:-len(".partial")]
@@ -103,7 +105,10 @@ def remove_stale_partials(path: Path) -> list:
             pass
         except PermissionError:
             continue  # alive, another user's
-        _remove_with_side_files(tmp)
+        if tmp.is_dir():  # a triangulation's partial folder
+            shutil.rmtree(tmp, ignore_errors=True)
+        else:
+            _remove_with_side_files(tmp)
         removed.append(tmp)
     return removed
 
@@ -122,7 +127,7 @@ def write_run_record(path: Path, record: dict) -> None:
 
 def read_run_record(path) -> dict | None:
     """The run record of a database (``{"settings": ..., "images": {name: sha256}}``), or None."""
-    con = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
+    con = sqlite3.connect(path)  # (read-write: a read-only connection leaves -wal/-shm files behind)
     try:
         rows = con.execute(f"SELECT key, value FROM {RUN_TABLE}").fetchall()
     except sqlite3.DatabaseError:
@@ -132,18 +137,51 @@ def read_run_record(path) -> dict | None:
     return {k: json.loads(v) for k, v in rows}
 
 
-def create_database(path: Path, rec, views, store: FeatureStore, record: dict) -> None:
+@contextlib.contextmanager
+def create_database(path: Path, rec, views, store: FeatureStore, record: dict, overwrite: bool = False):
     """Cameras, rigs, frames, images, keypoints and the run record, written under a temporary name,
-    then renamed into place (so a killed run never leaves a half-written database at ``path``).
+    then put into place (so a killed run never leaves a half-written database at ``path``); the
+    block runs with the new database locked (:func:`database_lock`), from before it is visible.
 
-    Keypoints are read from ``store`` one image at a time.
+    A new database (not ``overwrite``) is put into place with a hard link, which fails if another
+    run created ``path`` meanwhile: two runs never write one database. Keypoints are read from
+    ``store`` one image at a time.
     """
     pycolmap = require_pycolmap()
     remove_stale_partials(path)
     tmp = _partial_name(path, os.getpid())
     _remove_with_side_files(tmp)
+    tmp.touch()
     try:
-        db = pycolmap.Database.open(str(tmp))
+        with database_lock(tmp):  # the lock follows the file to its final name
+            _fill(pycolmap, tmp, rec, views, store)
+            write_run_record(tmp, record)
+            _put_in_place(tmp, path, overwrite)
+            yield
+    finally:
+        _remove_with_side_files(tmp)
+
+
+def _put_in_place(tmp: Path, path: Path, overwrite: bool) -> None:
+    if overwrite:
+        os.replace(tmp, path)
+        return
+    try:
+        os.link(tmp, path)
+    except FileExistsError:
+        raise ValueError(f"database {str(path)!r} was created by another run meanwhile; nothing was replaced") \
+            from None
+    except OSError:  # no hard links on this filesystem: the check and the rename are not one step
+        if path.exists():
+            raise ValueError(f"database {str(path)!r} was created by another run meanwhile") from None
+        os.replace(tmp, path)
+        return
+    tmp.unlink()
+
+
+def _fill(pycolmap, tmp: Path, rec, views, store) -> None:
+    db = pycolmap.Database.open(str(tmp))
+    try:
         with pycolmap.DatabaseTransaction(db):
             for cam in rec.cameras.values():
                 db.write_camera(cam, use_camera_id=True)
@@ -159,11 +197,8 @@ def create_database(path: Path, rec, views, store: FeatureStore, record: dict) -
                 db.write_frame(f, use_frame_id=True)
             for v in views:
                 db.write_keypoints(v.image_id, (store.keypoints(v) + 0.5).astype(np.float32))
-        db.close()
-        write_run_record(tmp, record)
-        os.replace(tmp, path)
     finally:
-        _remove_with_side_files(tmp)
+        db.close()
 
 
 def _flat(d: dict, prefix: str = "") -> dict:
@@ -191,15 +226,15 @@ def check_resumable(path: Path, views, record: dict, pair_list) -> set:
     if stored is None or "settings" not in stored:
         raise ValueError(f"database {str(path)!r} was not written by episeg colmap (no run record); "
                          "pass --overwrite to replace it")
-    changed = _differences(stored["settings"], record["settings"])
-    if changed:
-        raise ValueError(f"database {str(path)!r} was written with other settings ({'; '.join(changed[:3])}); "
-                         "rerun with the same settings, or pass --overwrite to start again")
     have, want = stored.get("images", {}), record["images"]
     if set(have) != set(want):
         extra = sorted(set(have) ^ set(want))
         raise ValueError(f"database {str(path)!r} holds other images than the model (e.g. {extra[0]!r}); "
                          "pass --overwrite to start again")
+    changed = _differences(stored["settings"], record["settings"])
+    if changed:
+        raise ValueError(f"database {str(path)!r} was written with other settings ({'; '.join(changed[:3])}); "
+                         "rerun with the same settings, or pass --overwrite to start again")
     modified = sorted(n for n in want if have[n] != want[n])
     if modified:
         raise ValueError(f"image {modified[0]!r} (or its features) changed since database {str(path)!r} was written"
@@ -244,6 +279,10 @@ def pair_unchanged(db, v1: View, v2: View, matches: np.ndarray, inliers: np.ndar
     return np.array_equal(have_m, _sorted_rows(matches)) and np.array_equal(have_i, _sorted_rows(inliers))
 
 
+#: The inverse of episeg_cv's pixels -> COLMAP's (``x_colmap = x + 0.5``), for moving ``F`` between them.
+_TO_COLMAP_INV = np.array([[1.0, 0.0, -0.5], [0.0, 1.0, -0.5], [0.0, 0.0, 1.0]])
+
+
 def write_pair(db, v1: View, v2: View, matches: np.ndarray, inliers: np.ndarray, replace: bool = False) -> None:
     """Write one pair's matches and CALIBRATED two-view geometry in one transaction (``replace``:
     delete what the database holds for the pair first, in the same transaction)."""
@@ -253,7 +292,7 @@ def write_pair(db, v1: View, v2: View, matches: np.ndarray, inliers: np.ndarray,
     tvg = pycolmap.TwoViewGeometry()
     tvg.config = pycolmap.TwoViewGeometryConfiguration.CALIBRATED
     tvg.E = g.essential_matrix
-    tvg.F = g.fundamental_matrix
+    tvg.F = _TO_COLMAP_INV.T @ g.fundamental_matrix @ _TO_COLMAP_INV  # in COLMAP's pixels (centre at +0.5)
     tvg.cam2_from_cam1 = pycolmap.Rigid3d(pycolmap.Rotation3d(g.R), g.t)
     tvg.inlier_matches = np.ascontiguousarray(inliers, dtype=np.uint32)
     with interrupts_deferred(), pycolmap.DatabaseTransaction(db):

@@ -82,9 +82,10 @@ def check_feature_database(database, resume: bool, overwrite: bool) -> Path:
 
 @contextlib.contextmanager
 def _read_only(path):
-    """A read-only SQLite connection (opening with pycolmap would write to the file)."""
+    """An SQLite connection that only reads (pycolmap's open would write to the file; sqlite3's read-only
+    mode would leave -wal/-shm files behind, so the connection is read-write and never writes)."""
     try:
-        con = sqlite3.connect(f"file:{Path(path).resolve()}?mode=ro", uri=True)
+        con = sqlite3.connect(Path(path).resolve())  # (read-write mode only so that closing removes -wal/-shm)
     except sqlite3.Error as e:
         raise ValueError(f"database {str(path)!r} cannot be opened: {e}") from None
     try:

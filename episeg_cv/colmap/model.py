@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import re
+import struct
 from pathlib import Path
 
+import numba as nb
 import numpy as np
 
 from .views import View, depth_range_from_depths, require_pycolmap
@@ -46,11 +49,20 @@ def load_model(model_dir):
     if not any((path / f"images.{ext}").is_file() for ext in ("bin", "txt")):
         raise ValueError(f"model folder {str(path)!r} holds no COLMAP model (images.bin or images.txt)")
     check_binary_model(path)
+    if (path / "images.bin").is_file():  # pycolmap reads a truncated binary file silently, as garbage
+        damaged = diagnose_model(path)
+        if damaged:
+            raise ValueError(f"model folder {str(path)!r} cannot be read: {damaged}")
     try:
         rec = pycolmap.Reconstruction(str(path))
     except Exception as e:  # pycolmap raises several types for a broken model
-        raise ValueError(f"model folder {str(path)!r} cannot be read: {e}") from e
-    views = views_from_reconstruction(rec)
+        where = diagnose_model(path)
+        reason = where or re.sub(r"^\[[^\]]*\]\s*", "", " ".join(str(e).split()))
+        raise ValueError(f"model folder {str(path)!r} cannot be read: {reason}") from None
+    try:
+        views = views_from_reconstruction(rec)
+    except ValueError as e:
+        raise ValueError(f"model folder {str(path)!r}: {diagnose_model(path) or e}") from None
     if not views:
         raise ValueError(f"model {str(path)!r} has no registered images")
     return views, rec
@@ -81,6 +93,114 @@ def check_binary_model(path: Path) -> None:
         if count * _MIN_RECORD[name] > size - 8:
             raise ValueError(f"model file {str(f)!r} is truncated or not a COLMAP binary file: it announces {count} "
                              f"records in {size} bytes")
+
+
+#: Parameters of each COLMAP camera model, by its id in the binary format.
+_MODEL_PARAMS = {0: 3, 1: 4, 2: 4, 3: 5, 4: 8, 5: 8, 6: 12, 7: 5, 8: 4, 9: 5, 10: 12, 11: 16}
+#: Tokens of a data line of each text file: (fixed count, size of the repeated group after it).
+_TEXT_LINES = {"cameras.txt": (4, None), "points3D.txt": (8, 2)}
+
+
+def diagnose_model(path: Path) -> str | None:
+    """Which file of a model is damaged, and how (a short reason); None when nothing is found.
+
+    Walks the records of ``cameras``, ``images`` and ``points3D`` (binary: every record must fit in
+    the file and the file must end with the last one; text: every data line must have the fields
+    COLMAP reads). Used to name the file when pycolmap refuses a model.
+    """
+    if (path / "images.bin").is_file():
+        for name, walk in (("cameras.bin", _walk_cameras), ("images.bin", _walk_images),
+                           ("points3D.bin", _walk_points)):
+            f = path / name
+            if f.is_file():
+                try:
+                    walk(f.read_bytes())
+                except (ValueError, IndexError, struct.error) as e:
+                    return f"{name} is damaged ({e})"
+        return None
+    for name in ("cameras.txt", "images.txt", "points3D.txt"):
+        f = path / name
+        if not f.is_file():
+            continue
+        lines = [ln.split() for ln in f.read_text(errors="replace").splitlines() if ln.strip() and not ln.startswith("#")]
+        for k, tokens in enumerate(lines):
+            problem = _text_line_problem(name, k, tokens)
+            if problem:
+                return f"{name} is damaged (data line {k + 1}: {problem})"
+        if name == "images.txt" and not lines:
+            return "images.txt has no images"
+    return None
+
+
+def _text_line_problem(name: str, k: int, tokens: list) -> str | None:
+    if name == "images.txt":
+        if k % 2 == 0 and len(tokens) < 10:
+            return f"an image line needs 10 fields (id, qw, qx, qy, qz, tx, ty, tz, camera id, name), got {len(tokens)}"
+        if k % 2 == 1 and len(tokens) % 3:
+            return f"a points line needs (x, y, point3D id) triples, got {len(tokens)} fields"
+        return _numbers(tokens[:9] if k % 2 == 0 else tokens)
+    fixed, group = _TEXT_LINES[name]
+    if len(tokens) < fixed or (group and (len(tokens) - fixed) % group):
+        return f"{len(tokens)} fields do not form a {name[:-4]} line"
+    return _numbers(tokens if name != "cameras.txt" else [tokens[0], *tokens[2:]])
+
+
+def _numbers(tokens) -> str | None:
+    for t in tokens:
+        try:
+            float(t)
+        except ValueError:
+            return f"{t!r} is not a number"
+    return None
+
+
+def _walk_cameras(b: bytes) -> None:
+    (n,), o = struct.unpack_from("<Q", b, 0), 8
+    for _ in range(n):
+        _, model, _, _ = struct.unpack_from("<iiQQ", b, o)
+        if model not in _MODEL_PARAMS:
+            raise ValueError(f"unknown camera model id {model}")
+        o += 24 + 8 * _MODEL_PARAMS[model]
+    _ends(b, o)
+
+
+def _walk_images(b: bytes) -> None:
+    (n,), o = struct.unpack_from("<Q", b, 0), 8
+    for _ in range(n):
+        o += 4 + 56 + 4
+        end = b.find(b"\0", o)
+        if end < 0:
+            raise ValueError("it is truncated inside an image's name")
+        (points,) = struct.unpack_from("<Q", b, end + 1)
+        o = end + 1 + 8 + 24 * points
+    _ends(b, o)
+
+
+def _walk_points(b: bytes) -> None:
+    (n,) = struct.unpack_from("<Q", b, 0)
+    _ends(b, int(_points_end(np.frombuffer(b, dtype=np.uint8), n)))
+
+
+@nb.njit(cache=True, nogil=True)
+def _points_end(b, n):
+    """Where the ``n`` records of a ``points3D.bin`` end (``len(b) + 1`` when one runs past the end)."""
+    o = 8
+    for _ in range(n):
+        if o + 51 > b.shape[0]:
+            return b.shape[0] + 1
+        track = 0
+        for k in range(8):  # little-endian uint64 track length at byte 43 of the record
+            track |= np.int64(b[o + 43 + k]) << (8 * k)
+        if track < 0 or track > b.shape[0]:
+            return b.shape[0] + 1
+        o += 51 + 8 * track
+    return o
+
+
+def _ends(b: bytes, o: int) -> None:
+    if o != len(b):
+        raise ValueError(f"its records end at byte {o} of {len(b)}" if o < len(b) else
+                         f"it is truncated at {len(b)} bytes")
 
 
 def reconstruction_from_views(views):

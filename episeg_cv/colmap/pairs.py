@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..io.paths import input_file
+
 __all__ = ["read_pairs", "index_pairs", "exhaustive_pairs", "overlap_scores", "neighbor_pairs", "sample_grid"]
 
 
@@ -31,15 +33,21 @@ def read_pairs(path, names) -> list[tuple[int, int]]:
         an image paired with itself.
     """
     items = []
-    with open(path, encoding="utf-8") as f:
-        for lineno, raw in enumerate(f, 1):
-            line = raw.strip()
-            if not line or line.startswith("#"):
-                continue
-            parts = line.split()
-            if len(parts) < 2:
-                raise ValueError(f"{path}:{lineno}: expected 'name1 name2', got {line!r}")
-            items.append((f"{path}:{lineno}", parts[0], parts[1]))
+    path = input_file(path, "pairs file")
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except UnicodeDecodeError as e:
+        raise ValueError(f"pairs file {str(path)!r} is not a text file ({e.reason} at byte {e.start})") from None
+    for lineno, raw in enumerate(text.splitlines(), 1):
+        line = raw.strip()
+        if not line or line.startswith("#"):
+            continue
+        parts = line.split()
+        if len(parts) < 2:
+            raise ValueError(f"{path}:{lineno}: expected 'name1 name2', got {line!r}")
+        items.append((f"{path}:{lineno}", parts[0], parts[1]))
+    if not items:
+        raise ValueError(f"pairs file {str(path)!r} lists no pairs (only blank lines or comments)")
     return index_pairs(items, names)
 
 

@@ -289,6 +289,8 @@ def match_model(model, image_dir, database, *, pairs=None, neighbors=None,
                          f"ratio ({rule.ratio}); use verify='pairs' for the pair rule alone")
     workers = as_positive_int(workers, "workers")
     image_dir = Path(image_dir)
+    if image_dir.exists() and not image_dir.is_dir():
+        raise ValueError(f"image folder {str(image_dir)!r} is a file, expected the folder of the images")
     if not image_dir.is_dir():
         raise ValueError(f"image folder {str(image_dir)!r} does not exist")
 
@@ -309,6 +311,7 @@ def match_model(model, image_dir, database, *, pairs=None, neighbors=None,
         views = database_views(path, views)
     else:
         path = check_database_path(database, resume, overwrite)
+        _not_an_input(path, model, image_dir, views)
     cache = Path(cache_dir) if cache_dir is not None else path.with_name(path.name + ".features")
     if cache.exists() and not cache.is_dir():
         raise ValueError(f"feature cache {str(cache)!r} is a file, expected a folder")
@@ -366,10 +369,12 @@ class _Run:
                 self._match(runner, record, resume)
             return
         record = self._features(runner.imap)
-        if not self.resume:  # a new database, or (overwrite) one replaced atomically by the new one
-            create_database(self.path, self.rec, self.views, self.store, record)
-        with database_lock(self.path):
-            self._match(runner, record, self.resume)
+        if self.resume:
+            with database_lock(self.path):
+                self._match(runner, record, True)
+        else:  # a new database, or (overwrite) one replaced atomically by the new one
+            with create_database(self.path, self.rec, self.views, self.store, record, self.overwrite):
+                self._match(runner, record, False)
 
     def _features(self, imap) -> dict:
         """Every image's features into the cache; the run record (settings and image hashes)."""
@@ -446,6 +451,20 @@ class _Run:
         report.pairs_per_second = matched / report.seconds_matching if report.seconds_matching > 0 else 0.0
         if samples:
             report.search_length = dict(zip(("line", "segment", "segment_in_depth_range"), lengths / samples))
+
+
+def _not_an_input(path: Path, model, image_dir: Path, views) -> None:
+    """Refuse a database path that is one of the run's input files (an image, the poses file, a model file)."""
+    if not path.exists():
+        return
+    inputs = [image_dir / v.name for v in views]
+    if not isinstance(model, (list, tuple)):
+        m = Path(model)
+        inputs += sorted(m.iterdir()) if m.is_dir() else [m]
+    for f in inputs:
+        if f.exists() and os.path.samefile(f, path):
+            raise ValueError(f"database {str(path)!r} is an input of this run ({str(f)!r}); writing it would replace "
+                             "it: give another database path")
 
 
 def _feature_config(features) -> FeatureConfig:

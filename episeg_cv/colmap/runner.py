@@ -21,6 +21,7 @@ read it once.
 from __future__ import annotations
 
 import concurrent.futures as cf
+import logging
 import os
 import threading
 import time
@@ -115,9 +116,12 @@ class Runner:
             if scheduler.startswith("local:"):
                 n = int(scheduler[6:]) if scheduler[6:].isdigit() else 0
                 if n < 1:
-                    raise ValueError(f"scheduler must be an address or local:N with N >= 1, got {scheduler!r}")
+                    raise ValueError(f"scheduler must be a Dask address or local:N with N a positive integer, "
+                                     f"got {scheduler!r}")
+                # silence_logs: the workers' own warnings (a task cancelled by an interrupt, say) are noise
                 self._cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                                                         host="127.0.0.1", dashboard_address="127.0.0.1:0")
+                                                         host="127.0.0.1", dashboard_address="127.0.0.1:0",
+                                                         silence_logs=logging.ERROR)
                 self._client = distributed.Client(self._cluster)
                 self._client.register_plugin(WarmWorker(os.getpid()))  # with the watchdog
                 self.describe = f"a local Dask cluster of {n} workers"
@@ -172,7 +176,13 @@ class Runner:
     def close(self):
         if self._pool is not None:
             self._pool.shutdown(wait=True, cancel_futures=True)
-        if self._client is not None:
-            self._client.close()
-        if self._cluster is not None:
-            self._cluster.close()
+        quiet = logging.getLogger("distributed")
+        level = quiet.level
+        quiet.setLevel(logging.ERROR)  # closing after an interrupt cancels tasks: warnings that say nothing new
+        try:
+            if self._client is not None:
+                self._client.close()
+            if self._cluster is not None:
+                self._cluster.close()
+        finally:
+            quiet.setLevel(level)

@@ -7,6 +7,7 @@ import shutil
 from pathlib import Path
 
 from ..interrupts import terminate_as_interrupt
+from .database import remove_stale_partials
 from .dbfeatures import reconstruction_from_database
 from .model import reconstruction_from_views
 from .views import require_pycolmap
@@ -61,7 +62,8 @@ def triangulate(database, model, image_dir, output_dir, options=None):
     from .pipeline import load_views
 
     pycolmap = require_pycolmap()
-    out = check_triangulation_folder(output_dir, model)
+    out = check_triangulation_folder(output_dir, model, image_dir)
+    remove_stale_partials(out)
     views, rec = load_views(model, image_dir)
     rec = known_pose_reconstruction(database, views, rec)
     if options is None:
@@ -80,8 +82,8 @@ def triangulate(database, model, image_dir, output_dir, options=None):
     return result
 
 
-def check_triangulation_folder(output_dir, model) -> Path:
-    """The folder a triangulated model goes to: not the input model's folder, and not a file."""
+def check_triangulation_folder(output_dir, model, image_dir=None) -> Path:
+    """The folder a triangulated model goes to: not a file, not the input model's folder, not the image folder."""
     out = Path(output_dir)
     if out.exists() and not out.is_dir():
         raise ValueError(f"triangulation folder {str(out)!r} is a file, expected a folder")
@@ -89,6 +91,8 @@ def check_triangulation_folder(output_dir, model) -> Path:
             and os.path.samefile(out, model):
         raise ValueError(f"triangulation folder {str(out)!r} is the input model's folder; its files would be "
                          "replaced: give another folder")
+    if image_dir is not None and Path(image_dir).is_dir() and out.is_dir() and os.path.samefile(out, image_dir):
+        raise ValueError(f"triangulation folder {str(out)!r} is the image folder: give another folder")
     parent = out.parent if str(out.parent) else Path(".")
     if not parent.is_dir():
         raise ValueError(f"triangulation folder {str(out)!r}: its parent folder does not exist")

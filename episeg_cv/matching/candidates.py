@@ -34,7 +34,7 @@ from __future__ import annotations
 import numpy as np
 
 from .. import threads
-from .._validation import as_points
+from .._validation import as_points, as_positive_int
 from ..geometry import EpipolarSegments, TwoViewGeometry, as_geometry
 from . import _index_kernels as _ik
 from . import _kernels
@@ -89,7 +89,7 @@ class CandidateIndex:
         if search.auto is not None:
             raise ValueError("CandidateIndex needs a numeric tol; estimate one with estimate_band (tol='auto')")
         self._setup(as_geometry(geometry), as_points(points1, "points1"), as_points(points2, "points2"), search,
-                    bucket_size)
+                    as_positive_int(bucket_size, "bucket_size"))
 
     @classmethod
     def build(cls, geometry: TwoViewGeometry, points1: np.ndarray, points2: np.ndarray, search: SearchConfig,
