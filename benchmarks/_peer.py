@@ -111,7 +111,7 @@ _FAST = {"reassoc", "contract", "nsz"}  # as episeg_cv's kernels: the scores ran
 
 
 @nb.njit(cache=True, fastmath=_FAST)  # a plain call, never inline="always": numba's IR inlining drops the
-def _l2sqr(A, q, B, t):               # fast-math flags and the 128-term sum becomes a serial chain (7x slower)
+def l2sqr(A, q, B, t):                # fast-math flags and the 128-term sum becomes a serial chain (7x slower)
     s = np.float32(0.0)
     for f in range(A.shape[1]):
         x = A[q, f] - B[t, f]
@@ -125,7 +125,7 @@ def _knn2_row(A, B, q, offsets, indices, idx, sc):
     j1, j2 = -1, -1
     for p in range(offsets[q], offsets[q + 1]):
         t = indices[p]
-        s = _l2sqr(A, q, B, t)
+        s = l2sqr(A, q, B, t)
         if s < b1 or (s == b1 and t < j1):
             if t != j1:  # a keypoint listed twice is not its own second
                 b2, j2 = b1, j1

@@ -33,6 +33,8 @@ from episeg_cv import CandidateIndex, SearchConfig, SegmentMatcher, keypoints_to
 from episeg_cv import match_descriptors
 from episeg_cv.matching import guided
 
+from _peer import l2sqr  # the same compiled score as the peer race's (benchmarks/ is on sys.path)
+
 #: The method, for the report.
 DESCRIPTION = """\
 Each stage is timed by calling the library's own pieces in the order `match` calls them (public names only);
@@ -66,24 +68,12 @@ def set_threads(n: int) -> None:
     episeg_cv.set_num_threads(int(n))
 
 
-_FAST = {"reassoc", "contract", "nsz"}
-
-
-@nb.njit(cache=True, fastmath=_FAST)  # a plain call (inline="always" would drop the fast-math flags)
-def _l2sqr(A, q, B, t):
-    s = np.float32(0.0)
-    for f in range(A.shape[1]):
-        x = A[q, f] - B[t, f]
-        s += x * x
-    return s
-
-
 @nb.njit(cache=True)
 def _score_pairs(A, qi, Bc):
     """Sum of the scores of query ``qi[m]`` against row ``m`` of ``Bc`` (the pairs' keypoint rows in order)."""
     acc = np.float32(0.0)
     for m in range(qi.shape[0]):
-        acc += _l2sqr(A, qi[m], Bc, m)
+        acc += l2sqr(A, qi[m], Bc, m)
     return acc
 
 

@@ -203,9 +203,9 @@ def as_depth_range(depth_range, n: int | None, name: str = "depth_range") -> tup
 def as_positive_int(x, name: str) -> int:
     """An integer ``>= 1`` (a bool is refused; so is a float, even a whole one)."""
     if isinstance(x, (bool, np.bool_)) or not isinstance(x, (int, np.integer)):
-        raise TypeError(f"{name} must be an integer >= 1, got {type(x).__name__}")
+        raise TypeError(f"{name} must be a positive integer (>= 1), got {type(x).__name__}")
     if x < 1:
-        raise ValueError(f"{name} must be an integer >= 1, got {x}")
+        raise ValueError(f"{name} must be a positive integer (>= 1), got {x}")
     return int(x)
 
 

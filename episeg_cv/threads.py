@@ -29,7 +29,7 @@ import numba
 import numpy as np
 
 __all__ = ["set_num_threads", "get_num_threads", "use_parallel", "call_parallel", "run", "blas_limit",
-           "Scratch", "blocks", "MIN_PARALLEL_ITEMS", "BLOCKS_PER_THREAD"]
+           "Scratch", "blocks", "map_blocks", "MIN_PARALLEL_ITEMS", "BLOCKS_PER_THREAD"]
 
 #: Below this many items (rows, points, keypoints) a kernel runs its serial variant: forking threads
 #: costs more than it saves (a few microseconds on an idle machine, milliseconds on an oversubscribed one).
@@ -150,20 +150,42 @@ class _NoLimit:
         return False
 
 
-def blas_limit():
-    """A context that limits BLAS to :func:`get_num_threads` threads while it is open (a no-op when BLAS
-    already uses no more). BLAS libraries keep one process-wide setting, so the limit also holds for
-    BLAS calls made by other Python threads meanwhile."""
+def blas_limit(n: int | None = None):
+    """A context that limits BLAS to ``n`` threads (default :func:`get_num_threads`) while it is open (a
+    no-op when BLAS already uses no more). BLAS libraries keep one process-wide setting, so the limit
+    also holds for BLAS calls made by other Python threads meanwhile."""
     global _blas
     if _blas is None:
         with _blas_lock:
             if _blas is None:
                 from threadpoolctl import ThreadpoolController
                 _blas = ThreadpoolController().select(user_api="blas")
-    n = get_num_threads()
+    n = get_num_threads() if n is None else n
     if not _blas.lib_controllers or all(c.num_threads <= n for c in _blas.lib_controllers):
         return _NoLimit()
     return _blas.limit(limits=n)
+
+
+_pool = None
+_pool_lock = threading.Lock()
+
+
+def map_blocks(fn, blocks_: list) -> list:
+    """``[fn(b) for b in blocks_]``, on up to :func:`get_num_threads` Python threads (a pool kept for the
+    process). For work that releases the GIL (numpy, single-threaded BLAS); results in order."""
+    n = min(get_num_threads(), len(blocks_))
+    if n <= 1:
+        return [fn(b) for b in blocks_]
+    global _pool
+    with _pool_lock:
+        if _pool is None or _pool._max_workers < n:
+            import concurrent.futures as cf
+
+            if _pool is not None:
+                _pool.shutdown(wait=False)
+            _pool = cf.ThreadPoolExecutor(n, thread_name_prefix="episeg-blocks")
+        pool = _pool
+    return list(pool.map(fn, blocks_))
 
 
 class Scratch(threading.local):

@@ -130,8 +130,12 @@ def read_run_record(path) -> dict | None:
     con = sqlite3.connect(path)  # (read-write: a read-only connection leaves -wal/-shm files behind)
     try:
         rows = con.execute(f"SELECT key, value FROM {RUN_TABLE}").fetchall()
-    except sqlite3.DatabaseError:
-        return None
+    except sqlite3.OperationalError as e:
+        if "no such table" in str(e):
+            return None
+        raise ValueError(f"database {str(path)!r} cannot be read (sqlite3: {e})") from None
+    except sqlite3.DatabaseError as e:
+        raise ValueError(f"database {str(path)!r} is damaged or not an SQLite database (sqlite3: {e})") from None
     finally:
         con.close()
     return {k: json.loads(v) for k, v in rows}

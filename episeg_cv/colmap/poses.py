@@ -9,7 +9,7 @@ import numpy as np
 
 
 from .._validation import as_camera_matrix, as_image_size, short_repr
-from ..io.paths import input_file
+from ..io.paths import read_json
 from .views import View, is_bounded
 
 __all__ = ["load_poses", "save_poses", "camera_of", "load_par", "is_par_file"]
@@ -51,15 +51,7 @@ def load_poses(path) -> list[View]:
     ValueError
         Unreadable JSON, a missing field or a bad value, naming the image.
     """
-    path = input_file(path, "poses file")
-    try:
-        data = json.loads(path.read_text(encoding="utf-8-sig"))
-    except UnicodeDecodeError as e:
-        raise ValueError(f"poses file {str(path)!r} is not a text file ({e.reason})") from None
-    except json.JSONDecodeError as e:
-        raise ValueError(f"poses file {str(path)!r}: invalid JSON at line {e.lineno}, column {e.colno}: {e.msg}") from None
-    except RecursionError:
-        raise ValueError(f"poses file {str(path)!r}: JSON nested too deeply to be a poses file") from None
+    data = read_json(path, "poses file")
     items = data.get("images") if isinstance(data, dict) else data
     if not isinstance(items, list) or not items:
         raise ValueError(f"poses file {str(path)!r} must hold a non-empty list 'images'")

@@ -31,7 +31,7 @@ import numpy as np
 from .._validation import MAX_IMAGE_SIDE, short_repr, as_camera_matrix, as_image_size, as_rotation, as_vector3
 from ..distortion import as_distortion
 from ..geometry import TwoViewGeometry, as_geometry
-from .paths import input_file, output_file, written_atomically
+from .paths import input_file, output_file, read_json, written_atomically
 
 __all__ = ["Calibration", "load_calibration", "save_calibration"]
 
@@ -244,18 +244,9 @@ def load_calibration(path, image_size1=None, image_size2=None) -> Calibration:
     path = input_file(path, "calibration file")
     name = path.name
     if path.suffix.lower() == ".json":
-        if path.stat().st_size > MAX_CALIBRATION_BYTES:
-            raise ValueError(f"{name}: {path.stat().st_size} bytes is too large for a calibration file")
-        try:
-            data = json.loads(path.read_text(encoding="utf-8-sig"))
-            if isinstance(data, dict):
-                data = {k: _keyed(_from_opencv_json, v, k, name) for k, v in data.items()}
-        except UnicodeDecodeError as exc:
-            raise ValueError(f"{name}: not a text file ({exc.reason})") from None
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"{name}: invalid JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}") from None
-        except RecursionError:
-            raise ValueError(f"{name}: JSON nested too deeply to be a calibration") from None
+        data = read_json(path, "calibration file", MAX_CALIBRATION_BYTES)
+        if isinstance(data, dict):
+            data = {k: _keyed(_from_opencv_json, v, k, name) for k, v in data.items()}
         if not isinstance(data, dict):
             raise ValueError(f"{name}: the top level must be a JSON object, got {type(data).__name__}")
     else:

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .paths import input_file, output_file, written_atomically
+from .paths import input_file, output_file, read_json, written_atomically
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "write_matches", "read_matches", "json_number"]
 
@@ -125,15 +125,15 @@ def read_matches(path) -> dict:
                          "write .json or .npz to read the matches again")
     if suffix not in (".json", ".npz"):
         raise ValueError(f"matches file {str(path)!r} must end in .json or .npz")
-    try:
-        if suffix == ".npz":
+    if suffix == ".json":
+        data = read_json(path, "matches file")
+    else:
+        try:
             with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as z:  # (our handle: closed on any error)
                 data = {k: z[k] for k in z.files}
-        else:
-            data = json.loads(path.read_text(encoding="utf-8"))
-    except (ValueError, OSError, EOFError, RecursionError, zipfile.BadZipFile, UnicodeDecodeError) as exc:
-        raise ValueError(f"matches file {str(path)!r} cannot be read: {type(exc).__name__}: "
-                         f"{' '.join(str(exc).split())[:200]}") from None
+        except (ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:
+            raise ValueError(f"matches file {str(path)!r} cannot be read: {type(exc).__name__}: "
+                             f"{' '.join(str(exc).split())[:200]}") from None
     if not isinstance(data, dict):
         raise ValueError(f"matches file {str(path)!r}: the top level must be an object, got {type(data).__name__}")
     missing = [k for k in ("meta", "keypoints1", "keypoints2", "matches", "distances", "labels") if k not in data]

@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import threading
 from pathlib import Path
 
-__all__ = ["output_file", "output_folder", "input_file", "written_atomically"]
+__all__ = ["output_file", "output_folder", "input_file", "written_atomically", "read_json"]
 
 
 def _first_file_on_the_way(folder: Path) -> Path | None:
@@ -82,3 +83,21 @@ def written_atomically(path: Path):
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
+
+
+def read_json(path, what: str, max_bytes: int | None = None):
+    """The JSON value of the file ``path`` (a UTF-8 BOM is accepted); a one-line ``ValueError`` naming
+    ``what`` and the file for a folder, a non-text file, invalid JSON (with its line and column), JSON
+    nested too deeply, or a file larger than ``max_bytes``."""
+    path = input_file(path, what)
+    size = path.stat().st_size
+    if max_bytes is not None and size > max_bytes:
+        raise ValueError(f"{what} {str(path)!r}: {size} bytes is too large (at most {max_bytes})")
+    try:
+        return json.loads(path.read_text(encoding="utf-8-sig"))
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{what} {str(path)!r} is not a text file ({e.reason})") from None
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{what} {str(path)!r}: invalid JSON at line {e.lineno}, column {e.colno}: {e.msg}") from None
+    except RecursionError:
+        raise ValueError(f"{what} {str(path)!r}: JSON nested too deeply") from None

@@ -17,6 +17,9 @@ from . import _kernels
 __all__ = ["Distances"]
 
 
+_scratch = threads.Scratch()  # per Python thread: the padding's row and product buffers
+
+
 class Distances:
     """Scores and exact distances between two checked descriptor arrays.
 
@@ -68,18 +71,12 @@ class Distances:
         bt = np.ascontiguousarray(b.T)
         bb = np.einsum("ij,ij->i", b, b)[None, :]
         n = min(chunk, len(qi))
-        rows = np.empty((n, self.a.shape[1]), dtype=np.float32)
-        prod = np.empty((n, len(tj)), dtype=np.float32)
-        with threads.blas_limit():
-            self._nearest_l2(qi, pos, hit, bt, bb, rows, prod, chunk, out)
-        return out
 
-    def _nearest_l2(self, qi, pos, hit, bt, bb, rows, prod, chunk, out):
-        for a in range(0, len(qi), chunk):
+        def block(a):  # one chunk of rows; single-threaded BLAS, so each row's sums do not depend on the threads
             z = min(a + chunk, len(qi))
-            r = rows[:z - a]
+            r = _scratch.get("rows", (n, self.a.shape[1]), np.float32)[:z - a]
             np.take(self.a, qi[a:z], axis=0, out=r, mode="clip")
-            p = np.matmul(r, bt, out=prod[:z - a])
+            p = np.matmul(r, bt, out=_scratch.get("prod", (n, len(tj)), np.float32)[:z - a])
             p *= -2.0  # |a|^2 + |b|^2 - 2 a.b, clamped at 0 (rounding)
             p += np.einsum("ij,ij->i", r, r)[:, None]
             p += bb
@@ -87,6 +84,13 @@ class Distances:
             h = np.flatnonzero(hit[a:z])
             p[h, pos[a:z][h]] = np.inf
             np.min(p, axis=1, out=out[a:z])
+
+        # The chunks run on Python threads (numpy and BLAS release the GIL) with BLAS on one thread: a
+        # multi-threaded BLAS on these small products, next to the compiled kernels' idle threads,
+        # was slower with two threads than with one.
+        with threads.blas_limit(1):
+            threads.map_blocks(block, list(range(0, len(qi), chunk)))
+        return out
 
     def to_distance(self, scores: np.ndarray) -> np.ndarray:
         """Scores -> distances in the units of the norm (the square root for L2)."""
