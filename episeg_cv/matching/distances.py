@@ -49,13 +49,13 @@ class Distances:
         """``(K,)`` scores of the pairs ``(i[k], j[k])``."""
         return _kernels.paired_scores(self.a, self.b, np.asarray(i, np.int64), np.asarray(j, np.int64), self.code)
 
-    def nearest_excluding(self, qi: np.ndarray, tj: np.ndarray, exclude: np.ndarray, chunk: int = 1024) -> np.ndarray:
+    def nearest_excluding(self, qi: np.ndarray, tj: np.ndarray, exclude: np.ndarray, chunk: int = 4096) -> np.ndarray:
         """``(len(qi),)`` smallest score of each query ``qi[r]`` over the keypoints ``tj`` (sorted), leaving out
         ``exclude[r]``; inf when nothing is left.
 
         Every query against the same keypoints is a dense product: for L2 it is done with BLAS, in
-        row chunks with reused buffers (fresh ``len(qi) x len(tj)`` arrays cost more in page faults
-        than the product on a VM), and the exclusion found by ``searchsorted``.
+        row chunks of at most ``chunk`` rows with reused buffers (fresh ``len(qi) x len(tj)`` arrays
+        cost more in page faults than the product on a VM), and the exclusion found by ``searchsorted``.
         """
         qi, tj, exclude = (np.asarray(v, dtype=np.int64) for v in (qi, tj, exclude))
         if self.norm not in ("l2", "l2sqr"):
@@ -68,28 +68,31 @@ class Distances:
         pos = np.minimum(np.searchsorted(tj, exclude), len(tj) - 1)
         hit = tj[pos] == exclude
         b = self.b[tj]
-        bt = np.ascontiguousarray(b.T)
+        bt2 = np.ascontiguousarray(b.T) * np.float32(-2.0)  # exact: a power of two
         bb = np.einsum("ij,ij->i", b, b)[None, :]
-        n = min(chunk, len(qi))
+        # min_j |a|^2 + |b_j|^2 - 2 a.b_j = |a|^2 + min_j (|b_j|^2 - 2 a.b_j): the row's |a|^2 is added
+        # after the minimum, which saves a pass over the product; clamped at 0 (rounding).
+        n_threads = threads.get_num_threads()
+        n_chunks = n_threads * -(-len(qi) // (n_threads * chunk))  # balanced over the threads
+        size = -(-len(qi) // n_chunks)
 
         def block(a):  # one chunk of rows; single-threaded BLAS, so each row's sums do not depend on the threads
-            z = min(a + chunk, len(qi))
-            r = _scratch.get("rows", (n, self.a.shape[1]), np.float32)[:z - a]
+            z = min(a + size, len(qi))
+            r = _scratch.get("rows", (size, self.a.shape[1]), np.float32)[:z - a]
             np.take(self.a, qi[a:z], axis=0, out=r, mode="clip")
-            p = np.matmul(r, bt, out=_scratch.get("prod", (n, len(tj)), np.float32)[:z - a])
-            p *= -2.0  # |a|^2 + |b|^2 - 2 a.b, clamped at 0 (rounding)
-            p += np.einsum("ij,ij->i", r, r)[:, None]
+            p = np.matmul(r, bt2, out=_scratch.get("prod", (size, len(tj)), np.float32)[:z - a])
             p += bb
-            np.maximum(p, 0.0, out=p)
             h = np.flatnonzero(hit[a:z])
             p[h, pos[a:z][h]] = np.inf
-            np.min(p, axis=1, out=out[a:z])
+            m = np.min(p, axis=1, out=out[a:z])
+            m += np.einsum("ij,ij->i", r, r)
+            np.maximum(m, 0.0, out=m)
 
         # The chunks run on Python threads (numpy and BLAS release the GIL) with BLAS on one thread: a
         # multi-threaded BLAS on these small products, next to the compiled kernels' idle threads,
         # was slower with two threads than with one.
         with threads.blas_limit(1):
-            threads.map_blocks(block, list(range(0, len(qi), chunk)))
+            threads.map_blocks(block, list(range(0, len(qi), size)))
         return out
 
     def to_distance(self, scores: np.ndarray) -> np.ndarray:
