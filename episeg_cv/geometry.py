@@ -82,11 +82,6 @@ def _rect(size: tuple[int, int], margin: float) -> tuple[float, float, float, fl
     return -0.5 - margin, w - 0.5 + margin, -0.5 - margin, h - 0.5 + margin
 
 
-def _dehomogenise(w: np.ndarray) -> np.ndarray:
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        return w[:, :2] / w[:, 2:3]
-
-
 def point_segment_distance(p: np.ndarray, start: np.ndarray, end: np.ndarray) -> np.ndarray:
     """(N,) distance from ``p[i]`` to the segment ``start[i] -> end[i]`` (all ``(N, 2)``, finite)."""
     d = end - start
@@ -510,7 +505,8 @@ class TwoViewGeometry(EpipolarGeometry):
             raise ValueError(f"depths must be a finite scalar or have shape ({x1.shape[0]},), got {z.shape}")
         z = np.broadcast_to(z, (x1.shape[0],))
         w = z[:, None] * (x1 @ self.infinity_homography[:, :2].T + self.infinity_homography[:, 2]) + self.epipole_homogeneous
-        return _dehomogenise(w), w[:, 2].copy()
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            return w[:, :2] / w[:, 2:3], w[:, 2].copy()
 
     def segments(self, points1, depth_range=(0.0, np.inf), margin: float = 0.0) -> EpipolarSegments:
         """The correct, visible epipolar segment in image 2 of each point of image 1.

@@ -166,7 +166,7 @@ def blas_limit(n: int | None = None):
     return _blas.limit(limits=n)
 
 
-_pool = None
+_pool = None  # (pool, its number of workers)
 _pool_lock = threading.Lock()
 
 
@@ -178,13 +178,13 @@ def map_blocks(fn, blocks_: list) -> list:
         return [fn(b) for b in blocks_]
     global _pool
     with _pool_lock:
-        if _pool is None or _pool._max_workers < n:
+        if _pool is None or _pool[1] < n:
             import concurrent.futures as cf
 
             if _pool is not None:
-                _pool.shutdown(wait=False)
-            _pool = cf.ThreadPoolExecutor(n, thread_name_prefix="episeg-blocks")
-        pool = _pool
+                _pool[0].shutdown(wait=False)
+            _pool = (cf.ThreadPoolExecutor(n, thread_name_prefix="episeg-blocks"), n)
+        pool = _pool[0]
     return list(pool.map(fn, blocks_))
 
 
