@@ -112,12 +112,25 @@ def call_parallel(kernel, *args):
     before = numba.get_num_threads()
     with (_launch_lock if _serialise_launches() else contextlib.nullcontext()):
         if before == n:
-            return kernel(*args)
+            return _launch(kernel, args)
         numba.set_num_threads(n)
         try:
-            return kernel(*args)
+            return _launch(kernel, args)
         finally:
             numba.set_num_threads(before)
+
+
+def _launch(kernel, args):
+    """``kernel(*args)``; a Ctrl-C (or a signal turned into one) that lands while a compiled kernel runs
+    (serial or parallel: numba calls back into Python to unpickle constants) can come out of numba as a ``SystemError`` ("returned a result with an exception set") caused by the
+    ``KeyboardInterrupt``: raise the interrupt itself, so that callers stop as they do for Ctrl-C."""
+    try:
+        return kernel(*args)
+    except SystemError as exc:
+        cause = exc.__cause__ or exc.__context__
+        if isinstance(cause, KeyboardInterrupt):
+            raise cause from None
+        raise
 
 
 def _serialise_launches() -> bool:
@@ -139,7 +152,7 @@ def run(serial, parallel, items: int, *args):
     """``parallel(*args, blocks())`` through :func:`call_parallel` when :func:`use_parallel` says so, else
     ``serial(*args)`` (one thread, or fewer than :data:`MIN_PARALLEL_ITEMS` items). By convention the
     parallel twin of a kernel takes the number of work blocks as its last argument."""
-    return call_parallel(parallel, *args, blocks()) if use_parallel(items) else serial(*args)
+    return call_parallel(parallel, *args, blocks()) if use_parallel(items) else _launch(serial, args)
 
 
 class _NoLimit:

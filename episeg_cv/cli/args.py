@@ -84,7 +84,7 @@ def tol_arg(text):
     try:
         return nonneg_float(text)
     except argparse.ArgumentTypeError:
-        raise argparse.ArgumentTypeError(f"expected a number of pixels >= 0 or 'auto', got {text!r}") from None
+        raise argparse.ArgumentTypeError(f"expected a finite number of pixels >= 0 or 'auto', got {text!r}") from None
 
 
 def depth(text):

@@ -66,12 +66,33 @@ def main(argv=None) -> int:
 
             traceback.print_exc()
         return 1
-    except Terminated as exc:
-        print(f"{PROG}: {exc.args[0]}; nothing half-written was left", file=sys.stderr, flush=True)
-        return 128 + exc.signum
-    except KeyboardInterrupt:
-        print(f"{PROG}: interrupted; nothing half-written was left", file=sys.stderr, flush=True)
-        return 130
+    except KeyboardInterrupt as exc:
+        return _interrupted(exc)
+    except SystemError as exc:  # an interrupt that landed inside compiled code comes out wrapped
+        interrupt = _interrupt_in(exc)
+        if interrupt is None:
+            raise
+        return _interrupted(interrupt)
     finally:
         log.removeHandler(handler)
         log.setLevel(level)
+
+
+def _interrupt_in(exc: BaseException) -> KeyboardInterrupt | None:
+    """The ``KeyboardInterrupt`` (or :class:`Terminated`) in the cause chain of ``exc``, if any."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
+def _interrupted(exc: KeyboardInterrupt) -> int:
+    """One notice for an interrupt; the exit code of the signal (130 for Ctrl-C, 128 + N for signal N)."""
+    if isinstance(exc, Terminated):
+        print(f"{PROG}: {exc.args[0]}; nothing half-written was left", file=sys.stderr, flush=True)
+        return 128 + exc.signum
+    print(f"{PROG}: interrupted; nothing half-written was left", file=sys.stderr, flush=True)
+    return 130

@@ -104,18 +104,20 @@ _TEXT_LINES = {"cameras.txt": (4, None), "points3D.txt": (8, 2)}
 def diagnose_model(path: Path) -> str | None:
     """Which file of a model is damaged, and how (a short reason); None when nothing is found.
 
-    Walks the records of ``cameras``, ``images`` and ``points3D`` (binary: every record must fit in
-    the file and the file must end with the last one; text: every data line must have the fields
-    COLMAP reads). Used to name the file when pycolmap refuses a model.
+    Walks the records of ``rigs``, ``cameras``, ``frames``, ``images`` and ``points3D`` (binary: every
+    record must fit in the file and the file must end with the last one; text: every data line must
+    have the fields COLMAP reads). Used to name the file when pycolmap refuses a model.
     """
     if (path / "images.bin").is_file():
-        for name, walk in (("cameras.bin", _walk_cameras), ("images.bin", _walk_images),
-                           ("points3D.bin", _walk_points)):
+        for name, walk in (("rigs.bin", _walk_rigs), ("cameras.bin", _walk_cameras), ("frames.bin", _walk_frames),
+                           ("images.bin", _walk_images), ("points3D.bin", _walk_points)):
             f = path / name
             if f.is_file():
                 try:
                     walk(f.read_bytes())
-                except (ValueError, IndexError, struct.error) as e:
+                except struct.error:
+                    return f"{name} is damaged (it is truncated inside a record)"
+                except (ValueError, IndexError) as e:
                     return f"{name} is damaged ({e})"
         return None
     for name in ("cameras.txt", "images.txt", "points3D.txt"):
@@ -161,6 +163,25 @@ def _walk_cameras(b: bytes) -> None:
         if model not in _MODEL_PARAMS:
             raise ValueError(f"unknown camera model id {model}")
         o += 24 + 8 * _MODEL_PARAMS[model]
+    _ends(b, o)
+
+
+def _walk_rigs(b: bytes) -> None:
+    (n,), o = struct.unpack_from("<Q", b, 0), 8
+    for _ in range(n):
+        _, sensors = struct.unpack_from("<II", b, o)
+        o += 8 + (8 if sensors else 0)  # the reference sensor (type, id)
+        for _ in range(max(sensors - 1, 0)):  # the others: type, id, has_pose, [pose: 7 doubles]
+            (has_pose,) = struct.unpack_from("<B", b, o + 8)
+            o += 9 + 56 * bool(has_pose)
+    _ends(b, o)
+
+
+def _walk_frames(b: bytes) -> None:
+    (n,), o = struct.unpack_from("<Q", b, 0), 8
+    for _ in range(n):  # frame id, rig id, rig_from_world (7 doubles), data ids (type, sensor id, uint64 id)
+        (data,) = struct.unpack_from("<I", b, o + 64)
+        o += 68 + 16 * data
     _ends(b, o)
 
 

@@ -106,6 +106,7 @@ class Runner:
 
     def __init__(self, workers: int = 1, scheduler: str | None = None):
         self._pool = self._client = self._cluster = None
+        self._tornado_level = None
         if scheduler is not None:
             try:
                 import distributed
@@ -132,6 +133,12 @@ class Runner:
                     raise ConnectionError(f"cannot reach the Dask scheduler at {scheduler!r}: {e}") from e
                 self._client.register_plugin(WarmWorker(None))
                 self.describe = f"the Dask cluster at {scheduler}"
+            # An interrupt inside one of Dask's blocking calls makes its cancel callback fail on the event
+            # loop (distributed's sync: "cannot access free variable 'future'"), which tornado logs with a
+            # traceback. The interrupt itself is reported, so that log is noise while Dask runs (until close).
+            tornado_log = logging.getLogger("tornado.application")
+            self._tornado_level = tornado_log.level
+            tornado_log.setLevel(logging.CRITICAL)
             self.window = 4 * max(1, len(self._client.scheduler_info().get("workers", {})) or 1)
             self.chunk = 8
         elif workers > 1:
@@ -186,3 +193,5 @@ class Runner:
                 self._cluster.close()
         finally:
             quiet.setLevel(level)
+            if self._tornado_level is not None:
+                logging.getLogger("tornado.application").setLevel(self._tornado_level)

@@ -143,7 +143,10 @@ def read_matches(path) -> dict:
     for k, v in data.items():
         try:
             if k == "meta":
-                out[k] = json.loads(str(v)) if suffix == ".npz" else v
+                try:
+                    out[k] = json.loads(str(v)) if suffix == ".npz" else v
+                except json.JSONDecodeError as exc:
+                    raise ValueError(f"expected a JSON object, got text that is not JSON ({exc})") from None
                 if not isinstance(out[k], dict):
                     raise ValueError(f"expected an object, got {type(out[k]).__name__}")
             elif k.startswith("keypoints"):

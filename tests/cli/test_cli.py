@@ -259,8 +259,8 @@ def test_match_without_a_pose(tmp_path, with_intrinsics, method):
 
 
 @pytest.mark.parametrize("args, message", [
-    (["--tol", "bogus"], "expected a number of pixels >= 0 or 'auto'"),
-    (["--tol", "-2"], "expected a number of pixels >= 0 or 'auto'"),
+    (["--tol", "bogus"], "expected a finite number of pixels >= 0 or 'auto'"),
+    (["--tol", "-2"], "expected a finite number of pixels >= 0 or 'auto'"),
     (["--constraint", "none"], "--constraint none matches with plain cv2.BFMatcher and needs no geometry"),
     (["--depth-range", "1", "5"], "--depth-range needs a calibration"),
 ])

@@ -63,6 +63,7 @@ def test_segments_never_writes_onto_an_input(pair):
     (["synthetic", "room", "--views", "1"], ["--views"]),
     (["synthetic", "room", "--seed", "-1"], ["--seed"]),
     (["synthetic", "room", "--size", "100000", "100000"], ["--size"]),
+    (["match", "image1.png", "image2.png", "--calib", "calib.json", "--tol", "nan"], ["--tol", "finite"]),
 ])
 def test_bad_numbers_are_named_by_their_flag(pair, args, words):
     r = run(*args, cwd=pair)
@@ -99,3 +100,40 @@ def test_demo_output_is_git_ignored():
 
     ignore = (Path(__file__).resolve().parents[2] / ".gitignore").read_text().split()
     assert "episeg_demo/" in ignore and "benchmarks/results/quick/" in ignore
+
+
+def test_an_interrupt_wrapped_by_compiled_code_ends_with_one_notice(monkeypatch, capsys):
+    """An interrupt raised inside numba's callbacks surfaces as a SystemError caused by it: the CLI must
+    still end with the signal's notice and exit code, and a SystemError of its own stays a crash."""
+    import signal as _signal
+
+    import importlib
+
+    cli_main = importlib.import_module("episeg_cv.cli.main")
+    from episeg_cv.interrupts import Terminated
+
+    def wrapped(args, console):
+        try:
+            raise Terminated(_signal.SIGTERM)
+        except Terminated as exc:
+            raise SystemError("returned a result with an exception set") from exc
+
+    def genuine(args, console):
+        raise SystemError("a real internal error")
+
+    parser = cli_main.build_parser()
+    real_parse = parser.parse_args
+    for func, expect in ((wrapped, 128 + _signal.SIGTERM), (genuine, None)):
+        def parse(argv=None, _func=func):
+            ns = real_parse(["demo"])
+            ns.func = _func
+            return ns
+        monkeypatch.setattr(parser, "parse_args", parse)
+        monkeypatch.setattr(cli_main, "build_parser", lambda: parser)
+        if expect is None:
+            with pytest.raises(SystemError, match="real internal error"):
+                cli_main.main([])
+        else:
+            assert cli_main.main([]) == expect
+            err = capsys.readouterr().err
+            assert err.strip() == "episeg: stopped by SIGTERM; nothing half-written was left"

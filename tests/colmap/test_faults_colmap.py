@@ -4,6 +4,7 @@ Each case failed before the fix (benchmarks/faults.py runs these and hundreds mo
 """
 
 import json
+import logging
 import os
 import shutil
 import signal
@@ -142,12 +143,14 @@ def test_broken_models_are_refused_at_once(work):
         colmap.load_model(work / "model")
 
 
-@pytest.mark.parametrize("name", ["cameras.bin", "images.bin", "points3D.bin"])
-def test_a_truncated_model_file_is_named(work, name):
-    """pycolmap read a truncated cameras.bin silently, as garbage focal lengths."""
+@pytest.mark.parametrize("name", ["cameras.bin", "images.bin", "points3D.bin", "rigs.bin", "frames.bin"])
+@pytest.mark.parametrize("cut", ["half", "last record"])
+def test_a_truncated_model_file_is_named(work, name, cut):
+    """pycolmap read a truncated cameras.bin silently, as garbage focal lengths, and named no file for
+    a truncated frames.bin ("Rig with ID 2 does not exist")."""
     f = work / "model" / name
     data = f.read_bytes()
-    f.write_bytes(data[:max(40, len(data) // 2)])
+    f.write_bytes(data[:max(9, len(data) // 2)] if cut == "half" else data[:-5])
     with pytest.raises(ValueError, match=name.replace(".", r"\.")):
         colmap.load_model(work / "model")
 
@@ -204,3 +207,18 @@ def test_sigterm_ends_a_run_cleanly_and_resume_completes(work):
     assert r.returncode == 0, r.stderr
     assert len(colmap.read_database_matches(work / "t.db")) == 6
     assert os.path.getsize(work / "t.db") > 0
+
+
+def test_the_dask_runner_quiets_tornado_only_while_it_runs():
+    """SIGTERM inside a Dask call made distributed's cancel callback fail, and tornado printed its traceback."""
+    pytest.importorskip("distributed")
+    from episeg_cv.colmap.runner import Runner
+
+    log = logging.getLogger("tornado.application")
+    before = log.level
+    runner = Runner(scheduler="local:1")
+    try:
+        assert log.level == logging.CRITICAL
+    finally:
+        runner.close()
+    assert log.level == before

@@ -185,3 +185,38 @@ def test_scratch_buffers_are_per_thread_and_grow():
     t.start()
     t.join()
     assert not np.shares_memory(other["buf"], c)
+
+
+def test_an_interrupt_inside_a_parallel_kernel_is_an_interrupt():
+    """A Ctrl-C that lands inside a numba parallel kernel came out as a SystemError ("returned a result with
+    an exception set"), which the CLI printed as a traceback; it must be the KeyboardInterrupt itself."""
+
+    def kernel(x):  # what numba's dispatcher raises when the signal handler ran inside the launch
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as exc:
+            raise SystemError("CPUDispatcher(kernel) returned a result with an exception set") from exc
+
+    with pytest.raises(KeyboardInterrupt):
+        threads.call_parallel(kernel, 1)
+
+    def broken(x):
+        raise SystemError("a real internal error")
+
+    with pytest.raises(SystemError, match="real internal error"):
+        threads.call_parallel(broken, 1)
+
+
+def test_an_interrupt_inside_a_serial_kernel_is_an_interrupt():
+    """CI: SIGTERM landed while a serial kernel (numba unpickling a constant) ran, and came out as a
+    SystemError with a traceback instead of the one-line notice."""
+    from episeg_cv.interrupts import Terminated
+
+    def serial(x):
+        try:
+            raise Terminated(15)
+        except Terminated as exc:
+            raise SystemError("CPUDispatcher(serial) returned a result with an exception set") from exc
+
+    with pytest.raises(Terminated):
+        threads.run(serial, None, 1, 0)

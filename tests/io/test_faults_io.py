@@ -90,6 +90,12 @@ def test_read_matches_validates_what_it_reads(tmp_path):
     with pytest.raises(ValueError, match="not read back"):
         read_matches(csv)
     npz = _matches_file(tmp_path / "m.npz")
+    with np.load(npz) as z:
+        arrays = {k: z[k] for k in z.files}
+    np.savez(tmp_path / "meta.npz", **{**arrays, "meta": np.array("abc{")})
+    with pytest.raises(ValueError, match="key 'meta': expected a JSON object, got text that is not JSON") as exc:
+        read_matches(tmp_path / "meta.npz")
+    one_line(exc)
     npz.write_bytes(npz.read_bytes()[:100])  # truncated
     with pytest.raises(ValueError, match="cannot be read"):
         read_matches(npz)
