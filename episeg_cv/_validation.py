@@ -266,9 +266,10 @@ def as_descriptor_pair(descriptors1, descriptors2, norm: str, names=("descriptor
         if d.ndim != 2:
             raise ValueError(f"{name} must have shape (N, D), got shape {d.shape}")
         if d.dtype != np.uint8 and d.size:
-            if not _all_finite(d):
+            lo, hi = float(d.min()), float(d.max())  # NaN propagates into both; an infinity is one of them
+            if not (np.isfinite(lo) and np.isfinite(hi)):
                 raise ValueError(f"{name} must be finite, got NaN or inf")
-            big = max(abs(float(d.min())), abs(float(d.max())))
+            big = max(abs(lo), abs(hi))
             if d.dtype == np.float64 and big > _FLOAT32_SAFE:
                 raise ValueError(f"{name} must fit in float32 (distances are computed in float32, as cv2 does), "
                                  f"got a value of magnitude {big:.3g}")
@@ -288,12 +289,6 @@ def as_descriptor_pair(descriptors1, descriptors2, norm: str, names=("descriptor
 #: Largest descriptor magnitude accepted in float64: squared distances of 128-dimensional float32
 #: descriptors stay finite below it.
 _FLOAT32_SAFE = 1e17
-
-
-def _all_finite(d: np.ndarray) -> bool:
-    """``np.all(np.isfinite(d))`` without an ``(N, D)`` boolean array: min and max propagate NaN, and
-    an infinity is one of them."""
-    return bool(np.isfinite(d.min()) and np.isfinite(d.max()))
 
 
 def as_points_of(points, descriptors: np.ndarray, name: str, descriptors_name: str) -> np.ndarray:

@@ -28,8 +28,8 @@ import threading
 import numba
 import numpy as np
 
-__all__ = ["set_num_threads", "get_num_threads", "use_parallel", "call_parallel", "run", "blas_limit",
-           "Scratch", "blocks", "map_blocks", "MIN_PARALLEL_ITEMS", "BLOCKS_PER_THREAD"]
+__all__ = ["set_num_threads", "get_num_threads", "limit_this_thread", "use_parallel", "call_parallel", "run",
+           "blas_limit", "Scratch", "blocks", "map_blocks", "MIN_PARALLEL_ITEMS", "BLOCKS_PER_THREAD"]
 
 #: Below this many items (rows, points, keypoints) a kernel runs its serial variant: forking threads
 #: costs more than it saves (a few microseconds on an idle machine, milliseconds on an oversubscribed one).
@@ -38,6 +38,7 @@ MIN_PARALLEL_ITEMS = 2048
 BLOCKS_PER_THREAD = 8
 
 _requested: int | None = None
+_this_thread = threading.local()  # .limit: the cap of limit_this_thread in this Python thread, if any
 _layer: str | None = None
 _launch_lock = threading.Lock()
 _blas = None
@@ -92,7 +93,38 @@ def get_num_threads() -> int:
     >>> episeg_cv.get_num_threads() >= 1
     True
     """
-    return numba.get_num_threads() if _requested is None else _requested
+    n = numba.get_num_threads() if _requested is None else _requested
+    limit = getattr(_this_thread, "limit", None)
+    return n if limit is None else min(n, limit)
+
+
+def limit_this_thread(n: int | None) -> None:
+    """Cap the kernels' threads for calls made from *this* Python thread at ``n`` (None: no cap).
+
+    For a pool of Python threads that each match their own pairs (the COLMAP runner's
+    ``workers=N``): with ``limit_this_thread(1)`` as the pool's initializer, the pairs are spread
+    over the cores and no pair forks threads of its own, while the rest of the program keeps
+    :func:`set_num_threads`. Results do not change.
+
+    Examples
+    --------
+    >>> import threading, episeg_cv
+    >>> from episeg_cv.threads import limit_this_thread
+    >>> seen = []
+    >>> def worker():
+    ...     limit_this_thread(1)
+    ...     seen.append(episeg_cv.get_num_threads())
+    >>> t = threading.Thread(target=worker); t.start(); t.join()
+    >>> seen
+    [1]
+    """
+    if n is not None:
+        if isinstance(n, bool) or not hasattr(n, "__index__"):
+            raise TypeError(f"n must be an int >= 1 or None, got {type(n).__name__}")
+        n = operator.index(n)
+        if n < 1:
+            raise ValueError(f"n must be an int >= 1 or None, got {n}")
+    _this_thread.limit = n
 
 
 def use_parallel(items: int) -> bool:

@@ -3,7 +3,9 @@
 - ``workers=N``: N threads of this process. The matching kernels are compiled
   with ``nogil`` and OpenCV releases the GIL while it detects, so the threads
   run at the same time; they share the loaded kernels and the features in
-  memory, start in microseconds, and end with the process.
+  memory, start in microseconds, and end with the process. Each worker's
+  kernels run on one thread (:func:`episeg_cv.threads.limit_this_thread`):
+  the cores are shared out by pairs.
 - ``scheduler="local:N"``: a new ``distributed.LocalCluster`` of N worker
   processes (one thread each). A worker plugin (:class:`._dask.WarmWorker`) prepares
   every worker once, when it starts: one thread for OpenCV and BLAS, the
@@ -27,6 +29,8 @@ import threading
 import time
 
 import cv2
+
+from ..threads import limit_this_thread
 
 __all__ = ["Runner", "CONNECT_TIMEOUT", "warm_up", "single_thread", "watch_parent"]
 
@@ -142,7 +146,10 @@ class Runner:
             self.window = 4 * max(1, len(self._client.scheduler_info().get("workers", {})) or 1)
             self.chunk = 8
         elif workers > 1:
-            self._pool = cf.ThreadPoolExecutor(workers, thread_name_prefix="episeg-worker")
+            # one kernel thread per worker: the pairs are spread over the cores, not each pair's queries
+            # (on 24 views, 2 workers ran at 0.94x of one when every pair also forked kernel threads)
+            self._pool = cf.ThreadPoolExecutor(workers, thread_name_prefix="episeg-worker",
+                                               initializer=limit_this_thread, initargs=(1,))
             self.describe = f"{workers} threads"
             self.window = 4 * workers
             self.chunk = 2

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
+import collections
 import dataclasses
-import functools
 import hashlib
 import logging
 import os
@@ -148,8 +148,8 @@ class FeatureStore:
     def load(self, view: View) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(keypoints, pinhole keypoints, descriptors)`` of ``view`` (run :meth:`ensure` first).
 
-        The last few images loaded stay in memory in each process (read-only
-        arrays), since consecutive pairs share images.
+        Loaded images stay in memory in each process (read-only arrays), up to
+        :data:`MEMORY_BUDGET` bytes, least recently used first out.
         """
         path = self.path(view)
         return _load_features(str(path), path.stat().st_mtime_ns)
@@ -164,8 +164,19 @@ def _complete(z, features: FeatureConfig) -> bool:
             and kp.dtype == np.float64 and pin.dtype == np.float64)
 
 
-@functools.lru_cache(maxsize=8)
+#: Bytes of loaded features each process keeps in memory (least recently used first out): every
+#: pair reads two images, so a collection that fits is read from disk once per image, not once per pair.
+MEMORY_BUDGET = 1 << 30
+_loaded: "collections.OrderedDict[tuple[str, int], tuple]" = collections.OrderedDict()
+_loaded_lock = threading.Lock()
+
+
 def _load_features(path: str, mtime_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    key = (path, mtime_ns)
+    with _loaded_lock:
+        if key in _loaded:
+            _loaded.move_to_end(key)
+            return _loaded[key]
     try:
         with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as z:
             out = z["keypoints"], z["pinhole"], z["descriptors"]
@@ -174,4 +185,9 @@ def _load_features(path: str, mtime_ns: int) -> tuple[np.ndarray, np.ndarray, np
                          "it was changed during the run") from None
     for a in out:
         a.flags.writeable = False
+    with _loaded_lock:
+        _loaded[key] = out
+        total = sum(a.nbytes for v in _loaded.values() for a in v)
+        while len(_loaded) > 1 and total > MEMORY_BUDGET:
+            total -= sum(a.nbytes for a in _loaded.popitem(last=False)[1])
     return out

@@ -333,6 +333,18 @@ def paired_scores(A, B, i, j, norm):
     return out
 
 
+@nb.njit(cache=True, nogil=True, parallel=True)
+def paired_scores_parallel(A, B, i, j, norm, blocks):
+    """:func:`paired_scores` on threads (each pair independent)."""
+    n = i.shape[0]
+    out = np.empty(n, dtype=np.float32)
+    nblk = blocks
+    for c in prange(nblk):
+        for m in range(c * n // nblk, (c + 1) * n // nblk):
+            out[m] = _score(A, i[m], B, j[m], norm)
+    return out
+
+
 @nb.njit(cache=True, nogil=True)
 def _nearest_rows(r0, r1, A, B, qi, tj, exclude, norm, out):
     for r in range(r0, r1):

@@ -2,9 +2,10 @@
 
 Scores are computed pair by pair in compiled code (:mod:`._kernels`): the
 squared distance for L2, the distance itself for L1 and Hamming, in float32.
-They rank candidates. The distances reported to users are recomputed the way
-``cv2`` computes them (:meth:`Distances.exact`), so that they agree with
-``cv2.BFMatcher`` to the last bit.
+They rank candidates, and the distances reported to users are made from them
+(:meth:`Distances.to_distance`, :meth:`Distances.exact`): on integer-valued
+descriptors (SIFT, uint8) they equal ``cv2.BFMatcher``'s, on others they agree
+within float32 rounding.
 """
 
 from __future__ import annotations
@@ -46,8 +47,10 @@ class Distances:
         return Distances(self.raw2, self.raw1, self.norm)
 
     def paired(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
-        """``(K,)`` scores of the pairs ``(i[k], j[k])``."""
-        return _kernels.paired_scores(self.a, self.b, np.asarray(i, np.int64), np.asarray(j, np.int64), self.code)
+        """``(K,)`` float32 scores of the pairs ``(i[k], j[k])``."""
+        i, j = np.asarray(i, np.int64), np.asarray(j, np.int64)
+        return threads.run(_kernels.paired_scores, _kernels.paired_scores_parallel, len(i), self.a, self.b, i, j,
+                           self.code)
 
     def nearest_excluding(self, qi: np.ndarray, tj: np.ndarray, exclude: np.ndarray, chunk: int = 4096) -> np.ndarray:
         """``(len(qi),)`` smallest score of each query ``qi[r]`` over the keypoints ``tj`` (sorted), leaving out
@@ -97,41 +100,14 @@ class Distances:
 
     def to_distance(self, scores: np.ndarray) -> np.ndarray:
         """Scores -> distances in the units of the norm (the square root for L2)."""
-        return np.sqrt(scores) if self.norm == "l2" else scores
+        return np.sqrt(scores, dtype=scores.dtype) if self.norm == "l2" else scores
 
-    def exact(self, i: np.ndarray, j: np.ndarray, chunk: int = 4096) -> np.ndarray:
-        """Paired distances ``d(i[k], j[k])`` as float32, computed directly (as ``cv2`` reports them).
+    def exact(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+        """Paired distances ``d(i[k], j[k])`` as float32, in the units ``cv2.BFMatcher`` reports.
 
-        In chunks, with the gathered rows in buffers reused from chunk to chunk.
+        The same compiled float32 sums that rank the candidates (:meth:`paired`), so a reported
+        distance is the one the matcher ranked by. On integer-valued descriptors (SIFT, uint8) they
+        are exact, hence equal to cv2's; on others, within float32 rounding of cv2's (the order of
+        the sums differs, as it does between ``cv2.norm`` and ``cv2.BFMatcher`` themselves).
         """
-        raw1, raw2, norm = self.raw1, self.raw2, self.norm
-        i, j = np.asarray(i, dtype=np.intp), np.asarray(j, dtype=np.intp)
-        out = np.empty(len(i), dtype=np.float32)
-        if len(i) == 0:
-            return out
-        n = min(chunk, len(i))
-        if norm == "hamming":
-            buf = np.empty((n, raw1.shape[1]), dtype=np.uint8)
-            for a in range(0, len(i), chunk):
-                z = min(a + chunk, len(i))
-                np.bitwise_xor(raw1[i[a:z]], raw2[j[a:z]], out=buf[:z - a])
-                out[a:z] = np.unpackbits(buf[:z - a], axis=1).sum(1)
-            return out
-        # float32 arithmetic, as cv2 does (uint8 descriptors are widened first)
-        x = np.empty((n, raw1.shape[1]), dtype=np.float32)
-        y = np.empty_like(x)
-        for a in range(0, len(i), chunk):
-            z = min(a + chunk, len(i))
-            xa, ya = x[:z - a], y[:z - a]
-            for raw, rows, buf in ((raw1, i[a:z], xa), (raw2, j[a:z], ya)):
-                if raw.dtype == np.float32:
-                    np.take(raw, rows, axis=0, out=buf, mode="clip")  # (the default 'raise' buffers)
-                else:
-                    np.copyto(buf, raw[rows], casting="unsafe")
-            np.subtract(xa, ya, out=xa)
-            if norm == "l1":
-                np.abs(xa, out=xa)
-                out[a:z] = xa.sum(1, dtype=np.float32)
-            else:
-                out[a:z] = np.einsum("ij,ij->i", xa, xa)
-        return np.sqrt(out, out=out) if norm == "l2" else out
+        return self.to_distance(self.paired(i, j))

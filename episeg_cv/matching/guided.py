@@ -169,9 +169,9 @@ def knn(inputs: MatchInputs, geometry: TwoViewGeometry, search: SearchConfig, k:
     if k > 2:  # no query has more neighbours than candidates: the (N1, k) arrays need no more columns
         k = max(1, min(k, int(index.candidate_counts().max(initial=0))))
     res = _scan(index, inputs.distances, k)
-    i, col = np.nonzero(res.indices >= 0)
+    found = res.indices >= 0
     dist = np.full(res.indices.shape, np.inf, dtype=np.float32)
-    dist[i, col] = inputs.distances.exact(i, res.indices[i, col])
+    dist[found] = inputs.distances.to_distance(res.scores[found])  # the scores the neighbours were ranked by
     return Neighbors(res.indices, dist, res.counts, res.column_best)
 
 

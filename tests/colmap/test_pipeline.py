@@ -329,6 +329,33 @@ def test_feature_cache_is_reused_and_refreshed(folder, tmp_path):
     assert not list((tmp_path / "cache").glob("*.tmp.npz"))
 
 
+def test_loaded_features_stay_in_memory_within_the_budget(folder, tmp_path, monkeypatch):
+    """Each pair loads two images: with 8 images in memory at most, an exhaustive order over more than 8
+    images read each file once per pair (dinoSparseRing: 139 reads for 16 images); now once per image,
+    as long as the collection fits the byte budget, and least recently used first out beyond it."""
+    from episeg_cv.colmap import store as store_module
+
+    views, _ = colmap.load_model(folder["model"])
+    store = FeatureStore(tmp_path / "cache", folder["images"], PRESETS["collection"].replace(max_features=300))
+    for v in views:
+        store.ensure(v)
+    monkeypatch.setattr(store_module, "_loaded", store_module.collections.OrderedDict())
+    reads = []
+    real_load = np.load
+    monkeypatch.setattr(store_module.np, "load", lambda *a, **k: reads.append(1) or real_load(*a, **k))
+    for i, j in exhaustive_pairs(len(views)):
+        store.load(views[i]), store.load(views[j])
+    assert len(reads) == len(views)
+    smallest = min(sum(a.nbytes for a in store.load(v)) for v in views)
+    monkeypatch.setattr(store_module, "MEMORY_BUDGET", 2 * smallest)  # room for two images at most
+    store_module._loaded.clear()
+    reads.clear()
+    for v in views + views:
+        a = store.load(v)
+        assert not a[2].flags.writeable
+    assert len(reads) == 2 * len(views) and len(store_module._loaded) <= 2
+
+
 # --------------------------------------------------------------------------------------
 # Pairs, overlap, depth ranges (hand-made views)
 # --------------------------------------------------------------------------------------

@@ -220,3 +220,39 @@ def test_an_interrupt_inside_a_serial_kernel_is_an_interrupt():
 
     with pytest.raises(Terminated):
         threads.run(serial, None, 1, 0)
+
+
+def test_limit_this_thread_caps_only_the_calling_thread():
+    import threading as _threading
+
+    threads.set_num_threads(None)
+    full = threads.get_num_threads()
+    seen = {}
+
+    def worker():
+        threads.limit_this_thread(1)
+        seen["worker"] = threads.get_num_threads()
+        seen["parallel"] = threads.use_parallel(10**6)
+        threads.limit_this_thread(None)
+        seen["after"] = threads.get_num_threads()
+
+    t = _threading.Thread(target=worker)
+    t.start()
+    t.join()
+    assert seen == {"worker": 1, "parallel": False, "after": full}
+    assert threads.get_num_threads() == full  # the main thread was never capped
+    for bad, error in ((0, ValueError), (-1, ValueError), (1.5, TypeError), (True, TypeError), ("2", TypeError)):
+        with pytest.raises(error, match="n must be an int >= 1 or None"):
+            threads.limit_this_thread(bad)
+
+
+def test_the_thread_runner_gives_each_worker_one_kernel_thread():
+    """On 24 views, 2 thread workers ran at 0.94x of one: every pair also forked kernel threads."""
+    from episeg_cv.colmap.runner import Runner
+
+    runner = Runner(workers=2)
+    try:
+        got = list(runner.imap(lambda _: threads.get_num_threads(), range(6)))
+    finally:
+        runner.close()
+    assert got == [1] * 6
