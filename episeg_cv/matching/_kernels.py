@@ -379,6 +379,42 @@ def nearest_excluding_parallel(A, B, qi, tj, exclude, norm, blocks):
 
 
 @nb.njit(cache=True, nogil=True)
+def padding_l2(A, qi, BT2, bb, tj, exclude, r0, r1, rows, prod, out):
+    """``out[r]``, for ``r`` in ``r0:r1``: the smallest squared L2 distance from ``A[qi[r]]`` to the
+    keypoints ``tj`` but ``exclude[r]`` (inf when none is left), as ``|a|^2 + min_c (|b_c|^2 - 2 a.b_c)``
+    clamped at 0.
+
+    ``BT2 (D, C)`` is ``-2`` times the keypoints' descriptors, transposed, and ``bb (C,)`` their squared
+    norms. The rows go in chunks of ``len(rows)`` starting at ``r0``: each chunk's rows are gathered into
+    ``rows``, multiplied by ``BT2`` with BLAS into ``prod`` (``np.dot``, in cache), then reduced. Call with
+    ``r0`` a multiple of ``len(rows)``, so that a row's product never depends on how rows are split.
+    """
+    D, C, m = A.shape[1], BT2.shape[1], rows.shape[0]
+    for s in range(r0, r1, m):
+        e = min(s + m, r1)
+        k = e - s
+        for i in range(k):
+            q = qi[s + i]
+            for f in range(D):
+                rows[i, f] = A[q, f]
+        if k < m:
+            rows[k:, :] = 0.0  # (a full-size product: the same BLAS path for every chunk)
+        np.dot(rows, BT2, prod)
+        for i in range(k):
+            best = np.float32(np.inf)
+            ex = exclude[s + i]
+            for c in range(C):
+                v = prod[i, c] + bb[c]
+                if v < best and tj[c] != ex:
+                    best = v
+            aa = np.float32(0.0)
+            for f in range(D):
+                aa += rows[i, f] * rows[i, f]
+            v = best + aa
+            out[s + i] = v if v > 0.0 else np.float32(0.0)
+
+
+@nb.njit(cache=True, nogil=True)
 def gather_rows(src, rows, out):
     """``out[m] = src[rows[m]]`` (rows of any width)."""
     for m in range(rows.shape[0]):

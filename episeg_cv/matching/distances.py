@@ -19,6 +19,8 @@ __all__ = ["Distances"]
 
 
 _scratch = threads.Scratch()  # per Python thread: the padding's row and product buffers
+#: Rows per BLAS product of :meth:`Distances.nearest_excluding` (256 KiB of product for 128 keypoints).
+PAD_CHUNK = 512
 
 
 class Distances:
@@ -52,13 +54,14 @@ class Distances:
         return threads.run(_kernels.paired_scores, _kernels.paired_scores_parallel, len(i), self.a, self.b, i, j,
                            self.code)
 
-    def nearest_excluding(self, qi: np.ndarray, tj: np.ndarray, exclude: np.ndarray, chunk: int = 4096) -> np.ndarray:
-        """``(len(qi),)`` smallest score of each query ``qi[r]`` over the keypoints ``tj`` (sorted), leaving out
+    def nearest_excluding(self, qi: np.ndarray, tj: np.ndarray, exclude: np.ndarray) -> np.ndarray:
+        """``(len(qi),)`` smallest score of each query ``qi[r]`` over the keypoints ``tj``, leaving out
         ``exclude[r]``; inf when nothing is left.
 
-        Every query against the same keypoints is a dense product: for L2 it is done with BLAS, in
-        row chunks of at most ``chunk`` rows with reused buffers (fresh ``len(qi) x len(tj)`` arrays
-        cost more in page faults than the product on a VM), and the exclusion found by ``searchsorted``.
+        Every query against the same keypoints is a dense product: for L2 it is done with BLAS
+        (:func:`._kernels.padding_l2`), in chunks of :data:`PAD_CHUNK` rows whose product stays in
+        cache, each fused with its minimum. The chunks are cut at fixed row numbers and run on Python
+        threads with BLAS on one thread each, so a row's arithmetic does not depend on the thread count.
         """
         qi, tj, exclude = (np.asarray(v, dtype=np.int64) for v in (qi, tj, exclude))
         if self.norm not in ("l2", "l2sqr"):
@@ -68,34 +71,22 @@ class Distances:
         if len(qi) == 0 or len(tj) == 0:
             out.fill(np.inf)
             return out
-        pos = np.minimum(np.searchsorted(tj, exclude), len(tj) - 1)
-        hit = tj[pos] == exclude
-        b = self.b[tj]
+        b = np.ascontiguousarray(self.b[tj])
         bt2 = np.ascontiguousarray(b.T) * np.float32(-2.0)  # exact: a power of two
-        bb = np.einsum("ij,ij->i", b, b)[None, :]
-        # min_j |a|^2 + |b_j|^2 - 2 a.b_j = |a|^2 + min_j (|b_j|^2 - 2 a.b_j): the row's |a|^2 is added
-        # after the minimum, which saves a pass over the product; clamped at 0 (rounding).
-        n_threads = threads.get_num_threads()
-        n_chunks = n_threads * -(-len(qi) // (n_threads * chunk))  # balanced over the threads
-        size = -(-len(qi) // n_chunks)
+        bb = np.einsum("ij,ij->i", b, b)
+        chunks = -(-len(qi) // PAD_CHUNK)
+        n = min(threads.get_num_threads(), chunks)
+        cuts = [PAD_CHUNK * (chunks * h // n) for h in range(n)] + [len(qi)]  # whole chunks per thread
 
-        def block(a):  # one chunk of rows; single-threaded BLAS, so each row's sums do not depend on the threads
-            z = min(a + size, len(qi))
-            r = _scratch.get("rows", (size, self.a.shape[1]), np.float32)[:z - a]
-            np.take(self.a, qi[a:z], axis=0, out=r, mode="clip")
-            p = np.matmul(r, bt2, out=_scratch.get("prod", (size, len(tj)), np.float32)[:z - a])
-            p += bb
-            h = np.flatnonzero(hit[a:z])
-            p[h, pos[a:z][h]] = np.inf
-            m = np.min(p, axis=1, out=out[a:z])
-            m += np.einsum("ij,ij->i", r, r)
-            np.maximum(m, 0.0, out=m)
+        def block(h):
+            rows = _scratch.get("rows", (PAD_CHUNK, self.a.shape[1]), np.float32)
+            prod = _scratch.get("prod", (PAD_CHUNK, len(tj)), np.float32)
+            _kernels.padding_l2(self.a, qi, bt2, bb, tj, exclude, cuts[h], cuts[h + 1], rows, prod, out)
 
-        # The chunks run on Python threads (numpy and BLAS release the GIL) with BLAS on one thread: a
-        # multi-threaded BLAS on these small products, next to the compiled kernels' idle threads,
-        # was slower with two threads than with one.
+        # BLAS on one thread: a multi-threaded BLAS on these small products, next to the compiled kernels'
+        # idle threads, was slower with two threads than with one
         with threads.blas_limit(1):
-            threads.map_blocks(block, list(range(0, len(qi), size)))
+            threads.map_blocks(block, list(range(n)))
         return out
 
     def to_distance(self, scores: np.ndarray) -> np.ndarray:

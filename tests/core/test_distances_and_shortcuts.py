@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 import pytest
 
+import episeg_cv
 from episeg_cv import (SegmentMatcher, TwoViewGeometry, filter_pairs, guided_matches, knn_descriptors,
                        match_descriptors)
 from episeg_cv._validation import as_descriptor_pair
@@ -97,21 +98,38 @@ def dense_scores(d1, d2, norm):
 
 @pytest.mark.parametrize("norm,dtype", [("l2", np.float32), ("l2sqr", np.float32), ("l1", np.float32),
                                         ("hamming", np.uint8)])
-@pytest.mark.parametrize("chunk", [1, 3, 1024])
-def test_nearest_excluding_equals_dense(norm, dtype, chunk):
-    d1, d2, _, _ = random_problem(n1=40, n2=60, dim=16, dtype=dtype, seed=4)
+@pytest.mark.parametrize("n_queries", [25, 1300])  # 1300: three padding chunks, the last one partial
+def test_nearest_excluding_equals_dense(norm, dtype, n_queries):
+    from episeg_cv.matching.distances import PAD_CHUNK
+
+    assert n_queries < PAD_CHUNK or n_queries % PAD_CHUNK
+    d1, d2, _, _ = random_problem(n1=max(40, n_queries), n2=60, dim=16, dtype=dtype, seed=4)
     dist = Distances(d1, d2, norm)
     rng = np.random.default_rng(5)
-    qi = np.sort(rng.choice(40, 25, replace=False))
+    qi = np.sort(rng.choice(len(d1), n_queries, replace=False))
     tj = np.sort(rng.choice(60, 12, replace=False))
-    exclude = np.where(rng.random(25) < 0.5, rng.choice(tj, 25), rng.integers(0, 60, 25))  # in tj or not
+    exclude = np.where(rng.random(n_queries) < 0.5, rng.choice(tj, n_queries), rng.integers(0, 60, n_queries))
     dense = dense_scores(d1[qi], d2[tj], norm)
     dense[tj[None, :] == exclude[:, None]] = np.inf
-    got = dist.nearest_excluding(qi, tj, exclude, chunk=chunk)
+    got = dist.nearest_excluding(qi, tj, exclude)
     np.testing.assert_allclose(got, dense.min(axis=1), rtol=1e-5)
     # one reference keypoint, excluded: nothing left
-    one = dist.nearest_excluding(qi[:1], tj[:1], tj[:1], chunk=chunk)
+    one = dist.nearest_excluding(qi[:1], tj[:1], tj[:1])
     assert one.tolist() == [np.inf]
+    # the padding's arithmetic per row does not depend on the thread count (fixed chunks)
+    try:
+        episeg_cv.set_num_threads(1)
+        serial = dist.nearest_excluding(qi, tj, exclude)
+    finally:
+        episeg_cv.set_num_threads(None)
+    np.testing.assert_array_equal(got, serial)
+    # non-integer descriptors: exact ties are rare, rounding differs from the dense float64 reference
+    f1, f2 = (rng.random((len(d1), 16)).astype(np.float32), rng.random((60, 16)).astype(np.float32))
+    if norm != "hamming":
+        got = Distances(f1, f2, norm).nearest_excluding(qi, tj, exclude)
+        want = dense_scores(f1[qi], f2[tj], norm)
+        want[tj[None, :] == exclude[:, None]] = np.inf
+        np.testing.assert_allclose(got, want.min(axis=1), rtol=1e-5, atol=1e-6)
 
 
 @pytest.mark.parametrize("norm,dtype,dim", [("l2", np.float32, 128), ("l2sqr", np.float32, 7), ("l1", np.float32, 33),
