@@ -541,8 +541,8 @@ class TwoViewGeometry(EpipolarGeometry):
         One compiled pass per point (numba; float64 without fast-math or
         fused multiply-adds; division by zero gives inf or NaN, as numpy's),
         on every core for large inputs (:func:`episeg_cv.set_num_threads`),
-        with the same bits for every thread count: over 10 M points/s per
-        core. ``a = H [x1; 1]`` is summed as ``x H[:, 0] + y H[:, 1] + H[:, 2]``,
+        with the same bits for every thread count: 5-12 M points/s per core
+        on the machines of ``benchmarks/table1.py``. ``a = H [x1; 1]`` is summed as ``x H[:, 0] + y H[:, 1] + H[:, 2]``,
         which may differ from numpy's ``x1 @ H[:, :2].T + H[:, 2]`` by an
         ulp (the array formulation, given the same ``a``, agrees to the last
         bit: ``tests/core/test_segment_kernel.py``).
