@@ -14,7 +14,7 @@ import contextlib
 import signal
 import threading
 
-__all__ = ["Terminated", "terminate_as_interrupt", "interrupts_deferred", "HANDLED"]
+__all__ = ["Terminated", "terminate_as_interrupt", "interrupts_deferred", "interrupt_in", "HANDLED"]
 
 #: The signals turned into an interrupt (those that exist on this platform).
 HANDLED = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
@@ -26,6 +26,22 @@ class Terminated(KeyboardInterrupt):
     def __init__(self, signum: int):
         super().__init__(f"stopped by {signal.Signals(signum).name}")
         self.signum = signum
+
+
+def interrupt_in(exc: BaseException | None) -> KeyboardInterrupt | None:
+    """The ``KeyboardInterrupt`` (or :class:`Terminated`) that ``exc`` is or was caused by, if any.
+
+    An interrupt raised while numba runs Python code inside a compiled kernel (unpickling a
+    constant, say) comes out as a ``SystemError`` ("returned a result with an exception set"),
+    sometimes several of them deep; the interrupt is at the end of their cause chain.
+    """
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
 
 
 def _raise(signum, frame):

@@ -28,6 +28,8 @@ import threading
 import numba
 import numpy as np
 
+from .interrupts import interrupt_in
+
 __all__ = ["set_num_threads", "get_num_threads", "limit_this_thread", "use_parallel", "call_parallel", "run",
            "blas_limit", "Scratch", "blocks", "map_blocks", "MIN_PARALLEL_ITEMS", "BLOCKS_PER_THREAD"]
 
@@ -153,16 +155,16 @@ def call_parallel(kernel, *args):
 
 
 def _launch(kernel, args):
-    """``kernel(*args)``; a Ctrl-C (or a signal turned into one) that lands while a compiled kernel runs
-    (serial or parallel: numba calls back into Python to unpickle constants) can come out of numba as a ``SystemError`` ("returned a result with an exception set") caused by the
-    ``KeyboardInterrupt``: raise the interrupt itself, so that callers stop as they do for Ctrl-C."""
+    """``kernel(*args)``; an interrupt that lands while a compiled kernel runs comes out of numba wrapped
+    in a ``SystemError`` (:func:`episeg_cv.interrupts.interrupt_in`): raise the interrupt itself, so that
+    callers stop as they do for Ctrl-C."""
     try:
         return kernel(*args)
     except SystemError as exc:
-        cause = exc.__cause__ or exc.__context__
-        if isinstance(cause, KeyboardInterrupt):
-            raise cause from None
-        raise
+        interrupt = interrupt_in(exc)
+        if interrupt is None:
+            raise
+        raise interrupt from None
 
 
 def _serialise_launches() -> bool:

@@ -7,7 +7,7 @@ import logging
 import sys
 
 from .. import __version__
-from ..interrupts import Terminated, terminate_as_interrupt
+from ..interrupts import Terminated, interrupt_in, terminate_as_interrupt
 from . import bench, colmap, demo, match, segments, synthetic
 from .args import Formatter, add_verbosity
 from .console import PROG, Console, UserError, one_line
@@ -69,24 +69,13 @@ def main(argv=None) -> int:
     except KeyboardInterrupt as exc:
         return _interrupted(exc)
     except SystemError as exc:  # an interrupt that landed inside compiled code comes out wrapped
-        interrupt = _interrupt_in(exc)
+        interrupt = interrupt_in(exc)
         if interrupt is None:
             raise
         return _interrupted(interrupt)
     finally:
         log.removeHandler(handler)
         log.setLevel(level)
-
-
-def _interrupt_in(exc: BaseException) -> KeyboardInterrupt | None:
-    """The ``KeyboardInterrupt`` (or :class:`Terminated`) in the cause chain of ``exc``, if any."""
-    seen = set()
-    while exc is not None and id(exc) not in seen:
-        if isinstance(exc, KeyboardInterrupt):
-            return exc
-        seen.add(id(exc))
-        exc = exc.__cause__ or exc.__context__
-    return None
 
 
 def _interrupted(exc: KeyboardInterrupt) -> int:

@@ -256,3 +256,25 @@ def test_the_thread_runner_gives_each_worker_one_kernel_thread():
     finally:
         runner.close()
     assert got == [1] * 6
+
+
+def test_an_interrupt_several_system_errors_deep_is_an_interrupt():
+    """The CI trace: Terminated, then three SystemErrors wrapping each other (numba's unpickling inside a
+    kernel called by a kernel); looking one cause deep missed it."""
+    from episeg_cv.interrupts import Terminated, interrupt_in
+
+    def serial(x):
+        try:
+            try:
+                try:
+                    raise Terminated(15)
+                except Terminated as exc:
+                    raise SystemError("_numba_unpickle returned a result with an exception set") from exc
+            except SystemError as exc:
+                raise SystemError("_numba_unpickle returned a result with an exception set") from exc
+        except SystemError as exc:
+            raise SystemError("CPUDispatcher(spread_keys) returned a result with an exception set") from exc
+
+    with pytest.raises(Terminated):
+        threads.run(serial, None, 1, 0)
+    assert interrupt_in(SystemError("a real internal error")) is None and interrupt_in(None) is None
