@@ -8,6 +8,7 @@ what was expected, and what was given. None of them uses ``assert``.
 from __future__ import annotations
 
 import logging
+import math
 import numbers
 
 import cv2
@@ -171,6 +172,10 @@ def as_nonnegative(x, name: str) -> float:
     return float(x)
 
 
+#: Scalar types that :func:`as_depth_range` checks without numpy (bool is not one).
+_REAL_SCALARS = (float, int, np.float64, np.float32, np.int64, np.int32)
+
+
 def as_depth_range(depth_range, n: int | None, name: str = "depth_range") -> tuple[np.ndarray, np.ndarray]:
     """``(zmin, zmax)`` as two float arrays broadcastable to ``(n,)``.
 
@@ -179,6 +184,17 @@ def as_depth_range(depth_range, n: int | None, name: str = "depth_range") -> tup
     """
     if isinstance(depth_range, (str, bytes)) or not hasattr(depth_range, "__len__") or len(depth_range) != 2:
         raise ValueError(f"{name} must be a pair (zmin, zmax), got {depth_range!r}")
+    if all(type(v) in _REAL_SCALARS for v in depth_range):  # the common case, without numpy's overhead
+        bounds = [float(v) for v in depth_range]
+        for label, v in zip(("zmin", "zmax"), bounds):
+            if math.isnan(v):
+                raise ValueError(f"{name} {label} must not be NaN")
+        zmin, zmax = bounds
+        if zmin < 0 or math.isinf(zmin):
+            raise ValueError(f"{name} zmin must be finite and >= 0, got {depth_range[0]!r}")
+        if zmin >= zmax:
+            raise ValueError(f"{name} must have zmin < zmax, got {depth_range!r}")
+        return np.array(zmin), np.array(zmax)
     bounds = []
     for label, v in zip(("zmin", "zmax"), depth_range):
         arr = np.asarray(v)

@@ -349,6 +349,14 @@ class TwoViewGeometry(EpipolarGeometry):
 
     is_calibrated = True
 
+    @classmethod
+    def _checked(cls, K1, K2, R, t, image_size1, image_size2) -> "TwoViewGeometry":
+        """A geometry from values that were checked already (by another geometry or a
+        :class:`~episeg_cv.colmap.View`): contiguous float64 arrays, ``R`` a rotation, sizes as tuples."""
+        out = cls.__new__(cls)
+        out._set(K1, K2, R, t, image_size1, image_size2)
+        return out
+
     def _set(self, K1, K2, R, t, image_size1, image_size2):
         """Store checked values and derive the rest (the one place that does, for every constructor)."""
         self.K1, self.K2, self.R, self.t = K1, K2, R, t
@@ -408,9 +416,8 @@ class TwoViewGeometry(EpipolarGeometry):
 
         Built from this geometry's checked values, with no second validation.
         """
-        inv = TwoViewGeometry.__new__(TwoViewGeometry)
-        inv._set(self.K2, self.K1, np.ascontiguousarray(self.R.T), -self.R.T @ self.t,
-                 self.image_size2, self.image_size1)
+        inv = TwoViewGeometry._checked(self.K2, self.K1, np.ascontiguousarray(self.R.T), -self.R.T @ self.t,
+                                       self.image_size2, self.image_size1)
         if self.covariance is not None:
             # R' = R^T, t' = -R^T t: to first order dtheta' = -R^T dtheta, dt' = -R^T dt - R^T [t]x dtheta
             G = np.zeros((6, 6))
@@ -454,8 +461,7 @@ class TwoViewGeometry(EpipolarGeometry):
         >>> gc.covariance.shape, g.covariance is None
         ((6, 6), True)
         """
-        out = TwoViewGeometry.__new__(TwoViewGeometry)
-        out._set(self.K1, self.K2, self.R, self.t, self.image_size1, self.image_size2)
+        out = TwoViewGeometry._checked(self.K1, self.K2, self.R, self.t, self.image_size1, self.image_size2)
         out.covariance = None if cov is None else _frozen(as_covariance(cov, "cov"))
         return out
 

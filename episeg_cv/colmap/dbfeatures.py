@@ -141,6 +141,9 @@ def read_database_features(database, image_id: int) -> tuple[np.ndarray, np.ndar
     if len(d) != len(kp):
         raise ValueError(f"image {image_id} has {len(kp)} keypoints but {len(d)} descriptors in database "
                          f"{str(database)!r}")
+    if not (np.isfinite(d).all() and np.isfinite(kp).all()):
+        raise ValueError(f"image {image_id} has keypoints or descriptors that are NaN or inf in database "
+                         f"{str(database)!r}")
     return kp, d
 
 

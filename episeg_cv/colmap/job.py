@@ -8,6 +8,7 @@ import numpy as np
 
 from ..matching import guided
 from ..matching.config import AcceptRule, SearchConfig
+from ..matching.distances import Distances
 from ..matching.filtering import keep_mask
 from .store import FeatureStore
 from .views import View
@@ -77,7 +78,8 @@ def match_pair(job: PairJob) -> PairResult:
         idx2 = np.flatnonzero(ok2)
         q2, d2 = q2[idx2], d2[idx2]
     g = job.view1.geometry_to(job.view2)
-    inputs = guided.MatchInputs.check(d1, d2, q1, q2, job.store.norm)
+    # the store's arrays were checked when they were read (finite, one row per keypoint, one dtype)
+    inputs = guided.MatchInputs(Distances(d1, d2, job.store.norm), q1, q2)
     search = job.search.replace(depth_range=job.view1.depth_range)
     ratios = None
     if job.loose is None:

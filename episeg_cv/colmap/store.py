@@ -183,6 +183,9 @@ def _load_features(path: str, mtime_ns: int) -> tuple[np.ndarray, np.ndarray, np
     except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile) as exc:
         raise ValueError(f"feature cache file {path!r} cannot be read ({type(exc).__name__}); "
                          "it was changed during the run") from None
+    des = out[2]
+    if des.dtype != np.uint8 and not np.isfinite(des).all():  # once per image: the matcher trusts them
+        raise ValueError(f"feature cache file {path!r} holds descriptors that are NaN or inf")
     for a in out:
         a.flags.writeable = False
     with _loaded_lock:

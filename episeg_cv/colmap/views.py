@@ -104,9 +104,14 @@ class View:
         return dataclasses.replace(self, depth_range=depth_range)
 
     def geometry_to(self, other: "View") -> TwoViewGeometry:
-        """The :class:`TwoViewGeometry` from this view to ``other`` (pinhole images)."""
-        return TwoViewGeometry.from_world_poses(self.K, self.R, self.t, other.K, other.R, other.t,
-                                                image_size1=self.image_size, image_size2=other.image_size)
+        """The :class:`TwoViewGeometry` from this view to ``other`` (pinhole images).
+
+        The same as :meth:`TwoViewGeometry.from_world_poses` on the two poses, without
+        checking again what each view checked when it was made (a collection asks for
+        every pair, some twice).
+        """
+        R = other.R @ self.R.T  # a product of two rotations: a rotation, to rounding
+        return TwoViewGeometry._checked(self.K, other.K, R, other.t - R @ self.t, self.image_size, other.image_size)
 
     @property
     def center(self) -> np.ndarray:

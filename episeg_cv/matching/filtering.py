@@ -23,8 +23,13 @@ def keep_mask(pairs: np.ndarray, points1: np.ndarray, points2: np.ndarray, geome
             return plan.bands.contains(pairs[:, 0], points2[pairs[:, 1]])
         geometry, search = plan.geometry, plan.search
     tol = search.tol
-    seg = geometry.segments(points1, search.depth_range, margin=tol)
     i, j = pairs[:, 0], pairs[:, 1]
+    if len(pairs) < len(points1):  # the segments of the pairs' queries only, one row per pair
+        depth_range = tuple(z if np.ndim(z) == 0 else z[i] for z in search.depth_range)
+        seg = geometry.segments(points1[i], depth_range, margin=tol)
+        i = np.arange(len(pairs))
+    else:
+        seg = geometry.segments(points1, search.depth_range, margin=tol)
     # 1-D gathers (one column at a time) are several times faster than gathering rows of (N, 2) arrays
     y0, y1 = np.ascontiguousarray(points2[:, 0])[j], np.ascontiguousarray(points2[:, 1])[j]
     l0, l1, l2 = (np.ascontiguousarray(seg.line[:, c])[i] for c in range(3))

@@ -132,6 +132,20 @@ def test_broken_cache_files_are_recomputed(work):
         assert len(store.load(views[0])[0]) == n
 
 
+def test_a_cache_file_with_nan_descriptors_is_refused(work):
+    """The matcher trusts the store's descriptors: a tampered file is refused when it is read."""
+    store = colmap.FeatureStore(work / "cache", work / "images")
+    views, _ = colmap.load_model(work / "model")
+    store.ensure(views[0])
+    path = store.path(views[0])
+    with np.load(path) as z:
+        arrays = dict(z)
+    arrays["descriptors"][3, 5] = np.nan
+    np.savez(path, **arrays)
+    with pytest.raises(ValueError, match="holds descriptors that are NaN or inf"):
+        store.load(views[0])
+
+
 def test_broken_models_are_refused_at_once(work):
     (work / "model" / "points3D.bin").write_bytes(b"")
     t0 = time.perf_counter()

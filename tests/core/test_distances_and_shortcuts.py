@@ -184,6 +184,24 @@ def test_filter_pairs_equals_definition_near_the_boundary(constraint, t):
     np.testing.assert_array_equal(keep, want)
 
 
+@pytest.mark.parametrize("n_pairs", [5, 199, 200, 600], ids=["few", "one_fewer", "as_many", "more"])
+def test_filter_pairs_is_the_same_for_few_and_many_pairs(n_pairs):
+    """With fewer pairs than queries only the pairs' segments are computed (per-point depth bounds taken
+    along); the mask must not depend on that choice."""
+    g = geometry()
+    rng = np.random.default_rng(11)
+    p1 = rng.uniform([0, 0], [199, 149], (200, 2))
+    i, y = planted_pairs(g, p1, 2.0, rng, n_pairs)
+    zmin, zmax = rng.uniform(0.5, 2.0, len(p1)), rng.uniform(3.0, 50.0, len(p1))
+    pairs = np.column_stack([i, np.arange(n_pairs)])
+    for depth_range in ((0.0, np.inf), (1.0, 20.0), (zmin, zmax)):
+        keep = filter_pairs(pairs, p1, y, g, tol=2.0, depth_range=depth_range)
+        zr = tuple(z if np.ndim(z) == 0 else z[i] for z in depth_range)
+        want = g.segments(p1[i], zr, margin=2.0).distance(y) <= 2.0
+        np.testing.assert_array_equal(keep, want)
+        assert keep.any() and not keep.all()
+
+
 def test_filter_lists_keep_objects_and_rows():
     g = geometry()
     d1, d2, p1, p2 = random_problem(seed=7)

@@ -570,6 +570,22 @@ def test_from_world_poses():
     np.testing.assert_allclose(g.t, t2, atol=1e-15)
 
 
+def test_view_geometry_is_from_world_poses_to_the_bit():
+    """``View.geometry_to`` builds from the views' checked values without checking them again: the same bits."""
+    from episeg_cv.colmap import View
+
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        R1, t1, R2, t2 = _world_poses(rng)
+        a = View("a.png", 1, 1, K_A, R1, t1, VGA)
+        b = View("b.png", 2, 1, K_B, R2, t2, (320, 240))
+        want = TwoViewGeometry.from_world_poses(K_A, a.R, a.t, K_B, b.R, b.t, image_size1=VGA, image_size2=(320, 240))
+        got = a.geometry_to(b)
+        for name in ("K1", "K2", "R", "t", "infinity_homography", "epipole_homogeneous"):
+            np.testing.assert_array_equal(getattr(got, name), getattr(want, name))
+        assert (got.image_size1, got.image_size2) == (VGA, (320, 240)) and not got.R.flags.writeable
+
+
 @pytest.mark.parametrize("s1, s2", [(1.0, 1.0), (3.7, 0.02), (-1.0, -1.0), (-2.5, 4.0), (1e3, -1e-3)])
 def test_from_projection_matrices(s1, s2):
     """P = s K [R | t] for any non-zero s, including negative: same K, R and t."""

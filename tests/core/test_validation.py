@@ -249,6 +249,26 @@ def test_segments_bad_depth_range(geom, depth_range, exc, pattern):
         geom.segments(PTS, depth_range=depth_range)
 
 
+@pytest.mark.parametrize("depth_range", [(0, 5), (0.5, np.inf), (np.float32(0.25), np.int64(3)), (1, 2.5),
+                                         (np.float64(2.0), np.float64(4.0))])
+def test_scalar_depth_ranges_give_what_the_array_path_gives(depth_range):
+    """Scalar bounds take a short path: the same 0-d float64 arrays as 0-d array bounds give."""
+    from episeg_cv._validation import as_depth_range
+
+    fast = as_depth_range(depth_range, 7)
+    slow = as_depth_range(tuple(np.asarray(v) for v in depth_range), 7)
+    for a, b in zip(fast, slow):
+        assert a.shape == b.shape == () and a.dtype == b.dtype == np.float64 and a == b
+
+
+@pytest.mark.parametrize("depth_range", [(True, 5.0), (0.0, False)])
+def test_boolean_depth_bounds_are_refused(depth_range):
+    from episeg_cv._validation import as_depth_range
+
+    with pytest.raises(TypeError, match="depth_range z"):
+        as_depth_range(depth_range, None)
+
+
 @pytest.mark.parametrize("margin, exc", [
     (-1.0, ValueError), (-1e-9, ValueError), (np.nan, ValueError), (np.inf, ValueError),
     ("1", TypeError), (None, TypeError), (True, TypeError), (np.ones(2), TypeError),
