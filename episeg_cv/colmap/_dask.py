@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from distributed.diagnostics.plugin import WorkerPlugin
 
-from .runner import single_thread, warm_up, watch_parent
+from .runner import single_thread, undo_malloc_trim, warm_up, watch_parent
 
 __all__ = ["WarmWorker"]
 
@@ -12,7 +12,8 @@ __all__ = ["WarmWorker"]
 class WarmWorker(WorkerPlugin):
     """Dask worker plugin: prepare a worker once, when it starts.
 
-    One thread for OpenCV and BLAS, the compiled matching kernels loaded
+    glibc's own large-allocation thresholds back (:func:`.runner.undo_malloc_trim`), one thread for
+    OpenCV and BLAS, the compiled matching kernels loaded
     (:func:`.runner.warm_up`), and, with ``driver_pid``, a watchdog that ends
     the worker when that process is gone (for the workers of a local cluster,
     so that none outlives a killed run). ``driver_pid=None``: no watchdog (the
@@ -25,6 +26,7 @@ class WarmWorker(WorkerPlugin):
         self.driver_pid = driver_pid
 
     def setup(self, worker=None):
+        undo_malloc_trim()
         single_thread()
         if self.driver_pid is not None:
             watch_parent(self.driver_pid)

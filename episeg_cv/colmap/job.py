@@ -13,7 +13,7 @@ from ..matching.filtering import keep_mask
 from .store import FeatureStore
 from .views import View
 
-__all__ = ["PairJob", "PairResult", "match_pair"]
+__all__ = ["PairJob", "PairResult", "match_pair", "pair_inputs"]
 
 
 @dataclass(frozen=True)
@@ -56,6 +56,24 @@ class PairResult:
     ratios: np.ndarray | None = None
 
 
+def pair_inputs(view1: View, view2: View, store: FeatureStore):
+    """``(inputs, geometry, idx1, idx2)``: the checked :class:`~episeg_cv.matching.guided.MatchInputs`
+    of a pair's keypoints that have a pinhole position, the geometry from ``view1`` to ``view2``, and the
+    stored indices of the rows kept in each image (None: all of them)."""
+    _, q1, d1 = store.load(view1)
+    _, q2, d2 = store.load(view2)
+    idx = []
+    for q, d in ((q1, d1), (q2, d2)):
+        ok = np.isfinite(q).all(axis=1)
+        idx.append(None if ok.all() else np.flatnonzero(ok))
+    if idx[0] is not None:
+        q1, d1 = q1[idx[0]], d1[idx[0]]
+    if idx[1] is not None:
+        q2, d2 = q2[idx[1]], d2[idx[1]]
+    # the store's arrays were checked when they were read (finite, one row per keypoint, one dtype)
+    return guided.MatchInputs(Distances(d1, d2, store.norm), q1, q2), view1.geometry_to(view2), idx[0], idx[1]
+
+
 def match_pair(job: PairJob) -> PairResult:
     """Match one pair on the segment (or line) and keep the inliers of both directions.
 
@@ -67,19 +85,8 @@ def match_pair(job: PairJob) -> PairResult:
     otherwise), and the inliers come back with their ratio values.
     Keypoints without a pinhole position (NaN) are not matched.
     """
-    _, q1, d1 = job.store.load(job.view1)
-    _, q2, d2 = job.store.load(job.view2)
-    ok1, ok2 = np.isfinite(q1).all(axis=1), np.isfinite(q2).all(axis=1)
-    idx1 = idx2 = None
-    if not ok1.all():
-        idx1 = np.flatnonzero(ok1)
-        q1, d1 = q1[idx1], d1[idx1]
-    if not ok2.all():
-        idx2 = np.flatnonzero(ok2)
-        q2, d2 = q2[idx2], d2[idx2]
-    g = job.view1.geometry_to(job.view2)
-    # the store's arrays were checked when they were read (finite, one row per keypoint, one dtype)
-    inputs = guided.MatchInputs(Distances(d1, d2, job.store.norm), q1, q2)
+    inputs, g, idx1, idx2 = pair_inputs(job.view1, job.view2, job.store)
+    q1, q2 = inputs.points1, inputs.points2
     search = job.search.replace(depth_range=job.view1.depth_range)
     ratios = None
     if job.loose is None:

@@ -29,7 +29,8 @@ from .. import __version__
 from .._validation import as_positive_int
 from ..features import PRESETS, FeatureConfig
 from ..interrupts import terminate_as_interrupt
-from ..matching.config import AcceptRule, SearchConfig, resolve
+from ..matching.config import AcceptRule, AutoTol, SearchConfig, resolve
+from .band import collection_band
 from .consensus import TrackConsensus, verify_tracks
 from .database import (check_database_path, check_resumable, create_database, database_lock, pair_unchanged,
                        write_pair)
@@ -84,6 +85,9 @@ class MatchReport:
         :func:`~episeg_cv.colmap.verify_tracks` (``edges``, ``kept``, ``groups``, ...).
     depth_ranges : dict
         ``{name: (zmin, zmax)}`` used for each image.
+    band : dict
+        With ``tol="auto"``: the band found (:func:`~episeg_cv.colmap.band.collection_band`:
+        ``tol``, ``sigma``, ``matches``, ``pairs``, ``fallback``); empty otherwise.
     search_length : dict
         Mean search length per sampled query in image 2, pixels (up to 256
         queries per pair): ``"line"`` (the whole epipolar line in the image),
@@ -106,6 +110,7 @@ class MatchReport:
     features: str = "extract"
     verify: dict = field(default_factory=dict)
     depth_ranges: dict = field(default_factory=dict)
+    band: dict = field(default_factory=dict)
     search_length: dict = field(default_factory=dict)
 
     def summary(self) -> str:
@@ -114,6 +119,11 @@ class MatchReport:
                  f"matches written: {self.n_matches}, inliers: {self.n_inliers}",
                  f"features: {self.seconds_features:.1f} s ({'read from the database' if self.features == SOURCE else 'extracted'}); "
                  f"matching: {self.seconds_matching:.1f} s, {self.pairs_per_second:.1f} pairs/s on {self.runner}"]
+        b = self.band
+        if b:
+            lines.append(f"band (tol auto): {b['tol']:.2f} px" + (
+                f", too few confident matches ({b['matches']}): twice the smallest band" if b["fallback"] else
+                f" from {b['matches']} confident matches of {b['pairs']} pairs (sigma {b['sigma']:.2f} px)"))
         v = self.verify
         if v.get("mode") == "tracks" and "edges" in v:
             lines.append(f"track consensus: {v['kept']} of {v['edges']} candidate matches kept, {v['groups']} "
@@ -222,8 +232,11 @@ def match_model(model, image_dir, database, *, pairs=None, neighbors=None,
         ``depth_range``; ``(0, inf)`` where there is none.
     search : SearchConfig, optional
         ``constraint`` (``"segment"`` or ``"line"``) and ``tol`` (pixels, in
-        the pinhole image). Its ``depth_range`` must be left at ``(0, inf)``:
-        the collection's come from ``depth_range``, one per image.
+        the pinhole image; ``"auto"`` or an :class:`~episeg_cv.AutoTol`: one
+        band for the collection, from the confident matches of a few pairs
+        around the given poses, which are never corrected:
+        :mod:`~episeg_cv.colmap.band`). Its ``depth_range`` must be left at
+        ``(0, inf)``: the collection's come from ``depth_range``, one per image.
     rule : AcceptRule, optional
         The acceptance rule of each pair (see :func:`~episeg_cv.match_descriptors`);
         with the track consensus, its ratio is the consensus's strict ratio.
@@ -279,8 +292,6 @@ def match_model(model, image_dir, database, *, pairs=None, neighbors=None,
         raise ValueError("constraint must be 'segment' or 'line' here ('none' has no geometry to use)")
     if search.bounded:
         raise ValueError("search.depth_range must be (0, inf) for a collection; give depth_range= instead")
-    if search.auto is not None:
-        raise ValueError("tol='auto' is not supported for collections (yet): give a number of pixels")
     from_database = isinstance(features, str) and features == SOURCE
     features = None if from_database else _feature_config(features)
     consensus = _consensus_config(verify)
@@ -322,7 +333,9 @@ def match_model(model, image_dir, database, *, pairs=None, neighbors=None,
                          verify={"mode": "pairs" if consensus is None else "tracks"},
                          depth_ranges={v.name: v.depth_range for v in views})
 
-    settings = {"search": {"tol": search.tol, "constraint": search.constraint}, "rule": dataclasses.asdict(rule),
+    tol = search.tol if search.auto is None else "auto" if search.auto == AutoTol() else repr(search.auto)
+    settings = {"search": {"tol": tol,
+                           "constraint": search.constraint}, "rule": dataclasses.asdict(rule),
                 "features": store.describe(),
                 "verify": {"mode": "pairs"} if consensus is None else {"mode": "tracks", **dataclasses.asdict(consensus)},
                 "depth_ranges": {v.name: [v.depth_range[0], str(v.depth_range[1])] for v in views}}
@@ -393,7 +406,8 @@ class _Run:
 
     def _results(self, runner, jobs):
         # a few consecutive pairs per task: less scheduling and pickling, and they share images
-        chunks = (jobs[k:k + runner.chunk] for k in range(0, len(jobs), runner.chunk))
+        size = runner.chunk(len(jobs))
+        chunks = (jobs[k:k + size] for k in range(0, len(jobs), size))
         return (r for chunk in runner.imap(_match_chunk, chunks) for r in chunk)
 
     def _match(self, runner, record, resume) -> None:
@@ -401,6 +415,10 @@ class _Run:
         report, views = self.report, self.views
         done = check_resumable(self.path, views, record, self.pair_list) if resume else set()
         t0 = time.perf_counter()
+        if self.search.auto is not None:  # one band for every pair, found before any is matched
+            band = collection_band(views, self.store, self.pair_list, self.search, self.rule, self.search.auto)
+            report.band = band.as_dict()
+            self.search = self.search.replace(tol=band.tol)
         lengths, samples = np.zeros(3), 0
         if self.consensus is None:  # each pair on its own: written as it comes back
             todo = [p for p in self.pair_list if p not in done]

@@ -134,12 +134,12 @@ def _union(*parts) -> np.ndarray:
     return np.unique(np.concatenate(parts), axis=0).astype(np.intp) if parts else np.zeros((0, 2), dtype=np.intp)
 
 
-def _strict(options: AutoTol, rule: AcceptRule) -> AcceptRule:
+def strict_rule(options: AutoTol, rule: AcceptRule) -> AcceptRule:
     # the usual padding even when the call's rule has none (knnMatch with crossCheck): confidence needs it
     return AcceptRule(ratio=options.strict_ratio, mutual=True, pad=max(rule.pad, AcceptRule().pad))
 
 
-def _clip_tol(sigma: float, options: AutoTol, image_size2) -> float:
+def clip_tol(sigma: float, options: AutoTol, image_size2) -> float:
     lo, hi = options.bounds(image_size2)
     return float(np.clip(options.k * sigma, lo, hi)) if np.isfinite(sigma) else float(np.clip(2 * lo, lo, hi))
 
@@ -178,17 +178,17 @@ def estimate_from_pairs(pairs: np.ndarray, p1: np.ndarray, p2: np.ndarray, geome
     """Steps 2-4 (module docstring) on given confident matches (checked inputs)."""
     size2 = geometry.image_size2
     if len(pairs) < options.min_matches:
-        return BandEstimate(_clip_tol(np.nan, options, size2), float("nan"), _plain(geometry), True, pairs,
+        return BandEstimate(clip_tol(np.nan, options, size2), float("nan"), _plain(geometry), True, pairs,
                             unguided=unguided, fallback=True)
     x1, x2 = p1[pairs[:, 0]], p2[pairs[:, 1]]
     if not (options.refine and isinstance(geometry, TwoViewGeometry)):
         sigma = robust_sigma(segment_residuals(geometry, x1, x2))
-        return BandEstimate(_clip_tol(sigma, options, size2), sigma, _plain(geometry), True, pairs, unguided=unguided)
+        return BandEstimate(clip_tol(sigma, options, size2), sigma, _plain(geometry), True, pairs, unguided=unguided)
     ref = _refine(geometry, p1, p2, pairs, options)
     keep, sigma = _keep_given(geometry, ref, x1, x2, options)
     if keep:
-        return BandEstimate(_clip_tol(sigma, options, size2), sigma, _plain(geometry), True, pairs, unguided=unguided)
-    return BandEstimate(_clip_tol(sigma, options, size2), sigma, ref.geometry, False, pairs, ref.rotation_change_deg,
+        return BandEstimate(clip_tol(sigma, options, size2), sigma, _plain(geometry), True, pairs, unguided=unguided)
+    return BandEstimate(clip_tol(sigma, options, size2), sigma, ref.geometry, False, pairs, ref.rotation_change_deg,
                         ref.translation_change_deg, unguided)
 
 
@@ -196,7 +196,7 @@ def estimate(inputs: MatchInputs, geometry: EpipolarGeometry, search: SearchConf
              options: AutoTol, rng=0, bucket_size: int = 64) -> BandEstimate:
     """:func:`estimate_band` on checked inputs."""
     p1, p2 = inputs.points1, inputs.points2
-    strict = _strict(options, rule)
+    strict = strict_rule(options, rule)
     band = options.first_band(geometry.image_size2)
     # the wide band even with a covariance: its bands as the first pass were measured no better (and
     # worse where the covariance understates the error)
@@ -223,7 +223,7 @@ def estimate(inputs: MatchInputs, geometry: EpipolarGeometry, search: SearchConf
             conf = conf2
             ref = _refine(geometry, p1, p2, conf, options)
             keep, sigma = _keep_given(geometry, ref, p1[conf[:, 0]], p2[conf[:, 1]], options)
-    tol = _clip_tol(sigma, options, geometry.image_size2)
+    tol = clip_tol(sigma, options, geometry.image_size2)
     if keep:
         return BandEstimate(tol, sigma, _plain(geometry), True, conf, unguided=unguided)
     return BandEstimate(tol, sigma, ref.geometry, False, conf, ref.rotation_change_deg, ref.translation_change_deg,

@@ -1,0 +1,108 @@
+"""``tol="auto"`` for a collection: one band for every pair, from the confident matches of a few pairs.
+
+The two-view estimate (:mod:`episeg_cv.matching.auto`) finds a pair's band
+from its confident matches and may correct the pair's pose. A collection's
+poses are global, and the triangulation uses them as they are, so here no
+pose is corrected (``AutoTol.refine`` does not apply) and the band is one
+number for the collection, from steps 1 and 4 of that estimate:
+
+1. **Confident matches** of up to :data:`SAMPLE_PAIRS` pairs, spread evenly
+   over the pair list: guided matching around the given poses in the wide
+   band (``AutoTol.band``; 64 px at 640 x 480), with the strict rule (mutual,
+   ratio below ``AutoTol.strict_ratio``), each view's depth range applied.
+2. **The band**: ``k`` robust standard deviations
+   (:func:`episeg_cv.refinement.robust_sigma`) of all their signed distances
+   to their segments, pooled, clamped to ``[tol_min, tol_max]``; with fewer
+   than ``min_matches`` confident matches in all, ``2 tol_min``.
+
+What the band buys is measured in ``benchmarks/colmap.py``: poses that are
+exact (the synthetic rooms) give the fixed default's 2 px; a real calibration
+gives what its keypoints and poses need.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..matching import guided
+from ..matching.auto import clip_tol, strict_rule
+from ..matching.config import AcceptRule, AutoTol, SearchConfig
+from ..refinement import robust_sigma, segment_residuals
+from .job import pair_inputs
+from .store import FeatureStore
+
+__all__ = ["CollectionBand", "collection_band", "SAMPLE_PAIRS"]
+
+#: Pairs whose confident matches give a collection's band.
+SAMPLE_PAIRS = 16
+
+
+@dataclass(frozen=True)
+class CollectionBand:
+    """The band ``tol="auto"`` found for a collection (:func:`collection_band`).
+
+    Attributes
+    ----------
+    tol : float
+        The band, pixels (in the pinhole images).
+    sigma : float
+        Robust standard deviation of the confident matches' distances to their segments, pixels
+        (NaN for the fallback).
+    matches, pairs : int
+        Confident matches pooled, and the pairs they came from (of those sampled).
+    fallback : bool
+        Too few confident matches: ``2 tol_min``.
+    """
+
+    tol: float
+    sigma: float
+    matches: int
+    pairs: int
+    fallback: bool
+
+    def as_dict(self) -> dict:
+        return {"tol": self.tol, "sigma": self.sigma, "matches": self.matches, "pairs": self.pairs,
+                "fallback": self.fallback}
+
+
+def sample_pairs(pair_list, n: int = SAMPLE_PAIRS) -> list:
+    """Up to ``n`` pairs of ``pair_list``, evenly spread over it (its first and last included)."""
+    if len(pair_list) <= n:
+        return list(pair_list)
+    return [pair_list[k] for k in np.unique(np.linspace(0, len(pair_list) - 1, n).round().astype(int))]
+
+
+def collection_band(views, store: FeatureStore, pair_list, search: SearchConfig, rule: AcceptRule,
+                    options: AutoTol, sample: int = SAMPLE_PAIRS) -> CollectionBand:
+    """The collection's band (module docstring) on checked inputs.
+
+    Parameters
+    ----------
+    views : list of View
+        With their depth ranges.
+    store : FeatureStore
+        Holding every image's features (:meth:`FeatureStore.ensure` done).
+    pair_list : list of (int, int)
+        Indices into ``views``.
+    search : SearchConfig
+        The constraint (its ``tol`` is the one being estimated).
+    rule : AcceptRule
+        The padding of the strict rule is at least this rule's.
+    options : AutoTol
+    """
+    strict = strict_rule(options, rule)
+    largest = max((v.image_size for v in views), key=lambda s: s[0] * s[1])
+    residuals, used = [], 0
+    for i, j in sample_pairs(pair_list, sample):
+        inputs, g, _, _ = pair_inputs(views[i], views[j], store)
+        wide = search.replace(tol=options.first_band(views[j].image_size), depth_range=views[i].depth_range)
+        conf = guided.match(inputs, g, wide, strict)[0]
+        if len(conf):
+            residuals.append(segment_residuals(g, inputs.points1[conf[:, 0]], inputs.points2[conf[:, 1]]))
+            used += 1
+    r = np.concatenate(residuals) if residuals else np.zeros(0)
+    fallback = len(r) < options.min_matches
+    sigma = float("nan") if fallback else robust_sigma(r)
+    return CollectionBand(clip_tol(sigma, options, largest), sigma, int(len(r)), used, fallback)

@@ -1,0 +1,108 @@
+"""``tol="auto"`` for a collection (:mod:`episeg_cv.colmap.band`): one band, from a few pairs' confident matches."""
+
+import dataclasses
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+pycolmap = pytest.importorskip("pycolmap")
+
+from episeg_cv import AutoTol, SearchConfig, colmap, filter_pairs, scenes  # noqa: E402
+from episeg_cv.colmap.band import sample_pairs  # noqa: E402
+
+pycolmap.logging.minloglevel = 2
+
+
+@pytest.fixture(scope="module")
+def collection():
+    return scenes.make_collection(4, image_size=(480, 360))
+
+
+@pytest.fixture(scope="module")
+def folder(collection, tmp_path_factory):
+    return colmap.save_collection(collection, tmp_path_factory.mktemp("band"))
+
+
+def _rotation(axis, deg):
+    a = np.asarray(axis, float) / np.linalg.norm(axis)
+    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    th = np.radians(deg)
+    return np.eye(3) + np.sin(th) * K + (1 - np.cos(th)) * K @ K
+
+
+def _true_inliers(db, views_true):
+    """Written inliers within 1 px of their segment under the true poses (raw = pinhole keypoints here)."""
+    by_name = {v.name: v for v in views_true}
+    con = pycolmap.Database.open(str(db))
+    try:
+        kp = {im.name: np.asarray(con.read_keypoints(im.image_id))[:, :2] - 0.5 for im in con.read_all_images()}
+    finally:
+        con.close()
+    n = 0
+    for (a, b), (_, inl) in colmap.read_database_matches(db).items():
+        g = by_name[a].geometry_to(by_name[b])
+        n += int(filter_pairs(inl.astype(np.intp), kp[a], kp[b], g, tol=1.0).sum())
+    return n
+
+
+def test_exact_poses_give_the_fixed_default(folder, tmp_path):
+    ref = colmap.match_model(folder["model"], folder["images"], tmp_path / "ref.db")
+    auto = colmap.match_model(folder["model"], folder["images"], tmp_path / "auto.db", tol="auto")
+    b = auto.band
+    assert b["tol"] == 2.0 and b["sigma"] < 0.5 and b["matches"] >= 100 and b["pairs"] == 6 and not b["fallback"]
+    assert ref.band == {}
+    got, want = colmap.read_database_matches(tmp_path / "auto.db"), colmap.read_database_matches(tmp_path / "ref.db")
+    assert got.keys() == want.keys()
+    assert all(np.array_equal(got[k][1], want[k][1]) for k in want)
+    assert "band (tol auto): 2.00 px from" in auto.summary()
+
+
+def test_noisy_poses_widen_the_band_and_keep_more_true_matches(folder, tmp_path):
+    views, _ = colmap.load_model(folder["model"])
+    rng = np.random.default_rng(3)
+    noisy = [dataclasses.replace(v, R=_rotation(rng.normal(size=3), 0.4) @ v.R) for v in views]
+    fixed = colmap.match_model(noisy, folder["images"], tmp_path / "fixed.db", log=lambda m: None)
+    auto = colmap.match_model(noisy, folder["images"], tmp_path / "auto.db", tol="auto", log=lambda m: None)
+    assert fixed.band == {} and auto.band["tol"] > 3.0
+    assert _true_inliers(tmp_path / "auto.db", views) > 1.2 * _true_inliers(tmp_path / "fixed.db", views)
+
+
+def test_too_few_confident_matches_fall_back_to_twice_the_smallest_band(folder, tmp_path):
+    r = colmap.match_model(folder["model"], folder["images"], tmp_path / "f.db",
+                           search=SearchConfig(tol=AutoTol(min_matches=10**7, tol_min=1.5)))
+    assert r.band["fallback"] and r.band["tol"] == 3.0 and np.isnan(r.band["sigma"])
+    assert "too few confident matches" in r.summary()
+
+
+def test_a_run_with_auto_resumes(folder, tmp_path):
+    db = tmp_path / "r.db"
+    first = colmap.match_model(folder["model"], folder["images"], db, tol="auto", verify="pairs")
+    again = colmap.match_model(folder["model"], folder["images"], db, tol="auto", verify="pairs", resume=True)
+    assert first.n_pairs_done == 6 and again.n_skipped == 6 and again.n_pairs_done == 0
+    with pytest.raises(ValueError, match="search.tol was 'auto', now 2.0"):
+        colmap.match_model(folder["model"], folder["images"], db, tol=2.0, verify="pairs", resume=True)
+
+
+@pytest.mark.parametrize("n, k", [(0, 16), (3, 16), (16, 16), (17, 16), (120, 16), (120, 1)])
+def test_sampled_pairs_spread_over_the_list(n, k):
+    pairs = [(i, i + 1) for i in range(n)]
+    got = sample_pairs(pairs, k)
+    assert len(got) == min(n, k) and len(set(got)) == len(got) and all(p in pairs for p in got)
+    if n > k > 1:
+        assert got[0] == pairs[0] and got[-1] == pairs[-1]
+        gaps = np.diff([pairs.index(p) for p in got])
+        assert gaps.max() - gaps.min() <= 1
+
+
+def test_cli_tol_auto(folder, tmp_path):
+    r = subprocess.run([sys.executable, "-m", "episeg_cv.cli", "colmap", str(folder["model"]), str(folder["images"]),
+                        "--database", str(tmp_path / "c.db"), "--tol", "auto"], capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "band (tol auto): 2.00 px" in r.stdout
+    r = subprocess.run([sys.executable, "-m", "episeg_cv.cli", "colmap", str(folder["model"]), str(folder["images"]),
+                        "--database", str(tmp_path / "d.db"), "--tol", "wide"], capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 2 and "--tol" in r.stderr and "'auto'" in r.stderr

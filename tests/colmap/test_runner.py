@@ -1,0 +1,72 @@
+"""The runner (:mod:`episeg_cv.colmap.runner`): task sizes, and the Dask workers' memory allocator."""
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+from episeg_cv.colmap import runner as runner_module
+from episeg_cv.colmap.runner import DASK_CHUNK_MAX, DASK_CHUNK_MIN, TASKS_PER_WORKER, Runner
+
+
+def test_task_sizes_in_this_process_and_threads():
+    assert Runner(1).chunk(276) == 1
+    pool = Runner(2)
+    try:
+        assert pool.chunk(276) == 2 and pool.chunk(1) == 2
+    finally:
+        pool.close()
+
+
+@pytest.mark.parametrize("n_items, workers, want", [
+    (276, 2, 35), (276, 8, 9), (276, 16, DASK_CHUNK_MIN), (10, 2, DASK_CHUNK_MIN), (100000, 2, DASK_CHUNK_MAX), (0, 2, DASK_CHUNK_MIN),
+])
+def test_dask_tasks_are_a_few_per_worker_within_bounds(n_items, workers, want):
+    r = Runner.__new__(Runner)  # the sizing alone, without a cluster
+    r._client, r._pool, r._workers = object(), None, workers
+    assert r.chunk(n_items) == want
+    if DASK_CHUNK_MIN < want < DASK_CHUNK_MAX:
+        assert -(-n_items // want) <= TASKS_PER_WORKER * workers
+
+
+_FAULTS = """
+import resource, numpy as np
+from episeg_cv.colmap.runner import undo_malloc_trim
+changed = undo_malloc_trim()
+for _ in range(3):  # warm
+    a = np.ones(1 << 20); del a
+f0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+for _ in range(200):  # 8 MiB arrays, allocated, touched and freed
+    a = np.ones(1 << 20); del a
+print(changed, resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f0)
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's allocator")
+def test_dask_workers_get_glibc_large_allocations_back():
+    """Dask's MALLOC_TRIM_THRESHOLD_ made every large array fault in fresh pages; undo_malloc_trim restores
+    the heap reuse (and changes nothing where the variable is not set)."""
+    env = {**os.environ, "MALLOC_TRIM_THRESHOLD_": "65536"}
+    base = {k: v for k, v in os.environ.items() if k != "MALLOC_TRIM_THRESHOLD_"}
+    run = lambda e, code: subprocess.run([sys.executable, "-c", code], env=e, capture_output=True, text=True,  # noqa: E731
+                                         timeout=120).stdout.split()
+    changed, faults = run(env, _FAULTS)
+    trimmed = run(env, _FAULTS.replace("changed = undo_malloc_trim()", "changed = 'kept'"))
+    untouched = run(base, _FAULTS)
+    assert changed == "True" and untouched[0] == "False"
+    assert int(trimmed[1]) > 100 * 200  # 2048 pages an array, faulted in each time
+    assert int(faults) < 2000 and int(untouched[1]) < 2000
+
+
+def test_worker_plugin_undoes_the_trim_setting(monkeypatch):
+    pytest.importorskip("distributed")
+    from episeg_cv.colmap import _dask
+
+    calls = []
+    monkeypatch.setattr(_dask, "undo_malloc_trim", lambda: calls.append("malloc"))
+    monkeypatch.setattr(_dask, "single_thread", lambda: calls.append("threads"))
+    monkeypatch.setattr(_dask, "warm_up", lambda: calls.append("kernels"))
+    _dask.WarmWorker(None).setup()
+    assert calls == ["malloc", "threads", "kernels"]
+    assert runner_module.MMAP_THRESHOLD < runner_module.TRIM_THRESHOLD
