@@ -70,3 +70,14 @@ def test_worker_plugin_undoes_the_trim_setting(monkeypatch):
     _dask.WarmWorker(None).setup()
     assert calls == ["malloc", "threads", "kernels"]
     assert runner_module.MMAP_THRESHOLD < runner_module.TRIM_THRESHOLD
+
+
+def test_local_cluster_workers_run_without_the_statistical_profiler():
+    pytest.importorskip("distributed")
+    r = Runner(scheduler="local:1")
+    try:
+        seen = r._client.run(lambda: __import__("dask").config.get("distributed.worker.profile.enabled"))
+        assert list(seen.values()) == [False]
+        assert r.chunk(276) == DASK_CHUNK_MAX and r.describe == "a local Dask cluster of 1 workers"
+    finally:
+        r.close()
