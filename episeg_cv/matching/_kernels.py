@@ -379,15 +379,18 @@ def nearest_excluding_parallel(A, B, qi, tj, exclude, norm, blocks):
 
 
 @nb.njit(cache=True, nogil=True)
-def padding_l2(A, qi, BT2, bb, tj, exclude, r0, r1, rows, prod, out):
+def padding_l2(A, qi, BT2, bb, tj, exclude, r0, r1, rows, prod, out, round_to):
     """``out[r]``, for ``r`` in ``r0:r1``: the smallest squared L2 distance from ``A[qi[r]]`` to the
     keypoints ``tj`` but ``exclude[r]`` (inf when none is left), as ``|a|^2 + min_c (|b_c|^2 - 2 a.b_c)``
     clamped at 0.
 
     ``BT2 (D, C)`` is ``-2`` times the keypoints' descriptors, transposed, and ``bb (C,)`` their squared
     norms. The rows go in chunks of ``len(rows)`` starting at ``r0``: each chunk's rows are gathered into
-    ``rows``, multiplied by ``BT2`` with BLAS into ``prod`` (``np.dot``, in cache), then reduced. Call with
-    ``r0`` a multiple of ``len(rows)``, so that a row's product never depends on how rows are split.
+    ``rows``, multiplied by ``BT2`` with BLAS into ``prod`` (``np.dot``, in cache), then reduced. A last,
+    shorter chunk is multiplied padded with zero rows to a multiple of ``round_to`` rows (not to
+    ``len(rows)``: a few hundred queries then cost a few hundred rows). Call with ``r0`` a multiple of
+    ``len(rows)`` and ``r1`` the end of all rows, so that a row's product never depends on how the rows
+    are split between threads.
     """
     D, C, m = A.shape[1], BT2.shape[1], rows.shape[0]
     for s in range(r0, r1, m):
@@ -397,9 +400,10 @@ def padding_l2(A, qi, BT2, bb, tj, exclude, r0, r1, rows, prod, out):
             q = qi[s + i]
             for f in range(D):
                 rows[i, f] = A[q, f]
-        if k < m:
-            rows[k:, :] = 0.0  # (a full-size product: the same BLAS path for every chunk)
-        np.dot(rows, BT2, prod)
+        mm = min(m, -(-k // round_to) * round_to)
+        if k < mm:
+            rows[k:mm, :] = 0.0
+        np.dot(rows[:mm], BT2, prod[:mm])
         for i in range(k):
             best = np.float32(np.inf)
             ex = exclude[s + i]

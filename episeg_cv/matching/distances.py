@@ -21,6 +21,8 @@ __all__ = ["Distances"]
 _scratch = threads.Scratch()  # per Python thread: the padding's row and product buffers
 #: Rows per BLAS product of :meth:`Distances.nearest_excluding` (256 KiB of product for 128 keypoints).
 PAD_CHUNK = 512
+#: The last, shorter chunk is multiplied with its rows padded to a multiple of this.
+PAD_ROUND = 64
 
 
 class Distances:
@@ -59,7 +61,8 @@ class Distances:
         ``exclude[r]``; inf when nothing is left.
 
         Every query against the same keypoints is a dense product: for L2 it is done with BLAS
-        (:func:`._kernels.padding_l2`), in chunks of :data:`PAD_CHUNK` rows whose product stays in
+        (:func:`._kernels.padding_l2`), in chunks of :data:`PAD_CHUNK` rows (the last one rounded up to
+        :data:`PAD_ROUND`) whose product stays in
         cache, each fused with its minimum. The chunks are cut at fixed row numbers and run on Python
         threads with BLAS on one thread each, so a row's arithmetic does not depend on the thread count.
         """
@@ -81,7 +84,7 @@ class Distances:
         def block(h):
             rows = _scratch.get("rows", (PAD_CHUNK, self.a.shape[1]), np.float32)
             prod = _scratch.get("prod", (PAD_CHUNK, len(tj)), np.float32)
-            _kernels.padding_l2(self.a, qi, bt2, bb, tj, exclude, cuts[h], cuts[h + 1], rows, prod, out)
+            _kernels.padding_l2(self.a, qi, bt2, bb, tj, exclude, cuts[h], cuts[h + 1], rows, prod, out, PAD_ROUND)
 
         # BLAS on one thread: a multi-threaded BLAS on these small products, next to the compiled kernels'
         # idle threads, was slower with two threads than with one
