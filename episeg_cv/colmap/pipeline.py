@@ -119,12 +119,12 @@ class MatchReport:
                  f"matches written: {self.n_matches}, inliers: {self.n_inliers}",
                  f"features: {self.seconds_features:.1f} s ({'read from the database' if self.features == SOURCE else 'extracted'}); "
                  f"matching: {self.seconds_matching:.1f} s, {self.pairs_per_second:.1f} pairs/s on {self.runner}"]
-        b = self.band
+        b, v = self.band, self.verify
         if b:
             lines.append(f"band (tol auto): {b['tol']:.2f} px" + (
                 f", too few confident matches ({b['matches']}): twice the smallest band" if b["fallback"] else
-                f" from {b['matches']} confident matches of {b['pairs']} pairs (sigma {b['sigma']:.2f} px)"))
-        v = self.verify
+                f" from {b['matches']} confident matches of {b['pairs']} pairs (sigma {b['sigma']:.2f} px)")
+                + (f"; track consensus within {b['tau']:.2f} px" if v.get("mode") == "tracks" else ""))
         if v.get("mode") == "tracks" and "edges" in v:
             lines.append(f"track consensus: {v['kept']} of {v['edges']} candidate matches kept, {v['groups']} "
                          f"tracks, {self.seconds_verify:.1f} s")
@@ -419,6 +419,8 @@ class _Run:
             band = collection_band(views, self.store, self.pair_list, self.search, self.rule, self.search.auto)
             report.band = band.as_dict()
             self.search = self.search.replace(tol=band.tol)
+            if self.consensus is not None and self.consensus.tau is None:
+                self.consensus = self.consensus.replace(tau=band.tau)
         lengths, samples = np.zeros(3), 0
         if self.consensus is None:  # each pair on its own: written as it comes back
             todo = [p for p in self.pair_list if p not in done]

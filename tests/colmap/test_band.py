@@ -10,7 +10,8 @@ import pytest
 pycolmap = pytest.importorskip("pycolmap")
 
 from episeg_cv import AutoTol, SearchConfig, colmap, filter_pairs, scenes  # noqa: E402
-from episeg_cv.colmap.band import sample_pairs  # noqa: E402
+from episeg_cv.colmap import TrackConsensus  # noqa: E402
+from episeg_cv.colmap.band import TAU_MIN, sample_pairs  # noqa: E402
 
 pycolmap.logging.minloglevel = 2
 
@@ -47,16 +48,30 @@ def _true_inliers(db, views_true):
     return n
 
 
-def test_exact_poses_give_the_fixed_default(folder, tmp_path):
-    ref = colmap.match_model(folder["model"], folder["images"], tmp_path / "ref.db")
-    auto = colmap.match_model(folder["model"], folder["images"], tmp_path / "auto.db", tol="auto")
+def _same(a, b):
+    assert a.keys() == b.keys()
+    assert all(np.array_equal(a[k][0], b[k][0]) and np.array_equal(a[k][1], b[k][1]) for k in a)
+
+
+def test_exact_poses_give_the_fixed_band_and_a_tighter_consensus(folder, tmp_path):
+    m, im = folder["model"], folder["images"]
+    read = colmap.read_database_matches
+    ref = colmap.match_model(m, im, tmp_path / "ref.db", verify="pairs")
+    auto = colmap.match_model(m, im, tmp_path / "auto.db", tol="auto", verify="pairs")
     b = auto.band
     assert b["tol"] == 2.0 and b["sigma"] < 0.5 and b["matches"] >= 100 and b["pairs"] == 6 and not b["fallback"]
-    assert ref.band == {}
-    got, want = colmap.read_database_matches(tmp_path / "auto.db"), colmap.read_database_matches(tmp_path / "ref.db")
-    assert got.keys() == want.keys()
-    assert all(np.array_equal(got[k][1], want[k][1]) for k in want)
-    assert "band (tol auto): 2.00 px from" in auto.summary()
+    assert b["tau"] == TAU_MIN and ref.band == {}
+    _same(read(tmp_path / "auto.db"), read(tmp_path / "ref.db"))  # the pair rule: the band alone
+    assert "band (tol auto): 2.00 px from" in auto.summary() and "consensus within" not in auto.summary()
+    # the track consensus checks reprojections within k sigma, at least TAU_MIN, instead of the band
+    tracks = colmap.match_model(m, im, tmp_path / "tracks.db", tol="auto")
+    assert "; track consensus within 1.00 px" in tracks.summary()
+    colmap.match_model(m, im, tmp_path / "tau1.db", verify=TrackConsensus(tau=TAU_MIN))
+    _same(read(tmp_path / "tracks.db"), read(tmp_path / "tau1.db"))
+    # a tolerance the caller gives is kept
+    colmap.match_model(m, im, tmp_path / "given.db", tol="auto", verify=TrackConsensus(tau=2.0))
+    colmap.match_model(m, im, tmp_path / "default.db")
+    _same(read(tmp_path / "given.db"), read(tmp_path / "default.db"))
 
 
 def test_noisy_poses_widen_the_band_and_keep_more_true_matches(folder, tmp_path):
