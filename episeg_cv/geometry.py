@@ -350,9 +350,15 @@ class TwoViewGeometry(EpipolarGeometry):
     is_calibrated = True
 
     @classmethod
-    def _checked(cls, K1, K2, R, t, image_size1, image_size2) -> "TwoViewGeometry":
-        """A geometry from values that were checked already (by another geometry or a
-        :class:`~episeg_cv.colmap.View`): contiguous float64 arrays, ``R`` a rotation, sizes as tuples."""
+    def from_checked(cls, K1, K2, R, t, image_size1, image_size2) -> "TwoViewGeometry":
+        """A geometry from values that were checked already, with no checks at all.
+
+        For code that holds checked values: another geometry's, or a
+        :class:`~episeg_cv.colmap.View`'s (a collection asks for every pair).
+        ``K1, K2`` ``(3, 3)`` and ``R`` ``(3, 3)`` (a rotation), ``t`` ``(3,)``, all
+        C-contiguous float64; sizes ``(width, height)`` tuples of int. Anything else
+        gives wrong results, not an error: from user input, use the constructor.
+        """
         out = cls.__new__(cls)
         out._set(K1, K2, R, t, image_size1, image_size2)
         return out
@@ -416,7 +422,7 @@ class TwoViewGeometry(EpipolarGeometry):
 
         Built from this geometry's checked values, with no second validation.
         """
-        inv = TwoViewGeometry._checked(self.K2, self.K1, np.ascontiguousarray(self.R.T), -self.R.T @ self.t,
+        inv = TwoViewGeometry.from_checked(self.K2, self.K1, np.ascontiguousarray(self.R.T), -self.R.T @ self.t,
                                        self.image_size2, self.image_size1)
         if self.covariance is not None:
             # R' = R^T, t' = -R^T t: to first order dtheta' = -R^T dtheta, dt' = -R^T dt - R^T [t]x dtheta
@@ -461,7 +467,7 @@ class TwoViewGeometry(EpipolarGeometry):
         >>> gc.covariance.shape, g.covariance is None
         ((6, 6), True)
         """
-        out = TwoViewGeometry._checked(self.K1, self.K2, self.R, self.t, self.image_size1, self.image_size2)
+        out = TwoViewGeometry.from_checked(self.K1, self.K2, self.R, self.t, self.image_size1, self.image_size2)
         out.covariance = None if cov is None else _frozen(as_covariance(cov, "cov"))
         return out
 

@@ -9,7 +9,10 @@ number for the collection, from steps 1 and 4 of that estimate:
 1. **Confident matches** of up to :data:`SAMPLE_PAIRS` pairs, spread evenly
    over the pair list: guided matching around the given poses in the wide
    band (``AutoTol.band``; 64 px at 640 x 480), with the strict rule (mutual,
-   ratio below ``AutoTol.strict_ratio``), each view's depth range applied.
+   ratio below ``AutoTol.strict_ratio``), each view's depth range applied; per
+   pair at most :data:`MAX_QUERIES` keypoints of the first image, spread over
+   it, against every keypoint of the second (the wide band on 8k keypoints
+   cost more than the matching of the whole collection).
 2. **The band**: ``k`` robust standard deviations
    (:func:`episeg_cv.refinement.robust_sigma`) of all their signed distances
    to their segments, pooled, clamped to ``[tol_min, tol_max]``; with fewer
@@ -37,16 +40,19 @@ import numpy as np
 from ..matching import guided
 from ..matching.auto import clip_tol, strict_rule
 from ..matching.config import AcceptRule, AutoTol, SearchConfig
-from ..refinement import robust_sigma, segment_residuals
+from ..matching.distances import Distances
+from ..refinement import robust_sigma, segment_residuals, spread_subset
 from .job import pair_inputs
 from .store import FeatureStore
 
-__all__ = ["CollectionBand", "collection_band", "SAMPLE_PAIRS", "TAU_MIN"]
+__all__ = ["CollectionBand", "collection_band", "SAMPLE_PAIRS", "TAU_MIN", "MAX_QUERIES"]
 
 #: Pairs whose confident matches give a collection's band.
 SAMPLE_PAIRS = 16
 #: Smallest reprojection tolerance of the track consensus that the band sets, pixels.
 TAU_MIN = 1.0
+#: Queries of the first image per sampled pair (a few hundred confident matches are enough).
+MAX_QUERIES = 1024
 
 
 @dataclass(frozen=True)
@@ -110,6 +116,7 @@ def collection_band(views, store: FeatureStore, pair_list, search: SearchConfig,
     residuals, used = [], 0
     for i, j in sample_pairs(pair_list, sample):
         inputs, g, _, _ = pair_inputs(views[i], views[j], store)
+        inputs = _queries(inputs, spread_subset(inputs.points1, MAX_QUERIES))
         wide = search.replace(tol=options.first_band(views[j].image_size), depth_range=views[i].depth_range)
         conf = guided.match(inputs, g, wide, strict)[0]
         if len(conf):
@@ -121,3 +128,11 @@ def collection_band(views, store: FeatureStore, pair_list, search: SearchConfig,
     tol = clip_tol(sigma, options, largest)
     tau = tol if fallback else float(min(max(options.k * sigma, TAU_MIN), tol))
     return CollectionBand(tol, sigma, int(len(r)), used, fallback, tau)
+
+
+def _queries(inputs: guided.MatchInputs, rows: np.ndarray) -> guided.MatchInputs:
+    """The same inputs with only the queries ``rows`` of image 1."""
+    if len(rows) == len(inputs.points1):
+        return inputs
+    d = inputs.distances
+    return guided.MatchInputs(Distances(d.raw1[rows], d.raw2, d.norm), inputs.points1[rows], inputs.points2)

@@ -87,7 +87,8 @@ class MatchReport:
         ``{name: (zmin, zmax)}`` used for each image.
     band : dict
         With ``tol="auto"``: the band found (:func:`~episeg_cv.colmap.band.collection_band`:
-        ``tol``, ``sigma``, ``matches``, ``pairs``, ``fallback``); empty otherwise.
+        ``tol``, ``sigma``, ``matches``, ``pairs``, ``fallback``, and ``tau``, the track
+        consensus's reprojection tolerance); empty otherwise.
     search_length : dict
         Mean search length per sampled query in image 2, pixels (up to 256
         queries per pair): ``"line"`` (the whole epipolar line in the image),
@@ -334,8 +335,7 @@ def match_model(model, image_dir, database, *, pairs=None, neighbors=None,
                          depth_ranges={v.name: v.depth_range for v in views})
 
     tol = search.tol if search.auto is None else "auto" if search.auto == AutoTol() else repr(search.auto)
-    settings = {"search": {"tol": tol,
-                           "constraint": search.constraint}, "rule": dataclasses.asdict(rule),
+    settings = {"search": {"tol": tol, "constraint": search.constraint}, "rule": dataclasses.asdict(rule),
                 "features": store.describe(),
                 "verify": {"mode": "pairs"} if consensus is None else {"mode": "tracks", **dataclasses.asdict(consensus)},
                 "depth_ranges": {v.name: [v.depth_range[0], str(v.depth_range[1])] for v in views}}

@@ -111,7 +111,7 @@ class View:
         every pair, some twice).
         """
         R = other.R @ self.R.T  # a product of two rotations: a rotation, to rounding
-        return TwoViewGeometry._checked(self.K, other.K, R, other.t - R @ self.t, self.image_size, other.image_size)
+        return TwoViewGeometry.from_checked(self.K, other.K, R, other.t - R @ self.t, self.image_size, other.image_size)
 
     @property
     def center(self) -> np.ndarray:

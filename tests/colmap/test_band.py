@@ -121,3 +121,14 @@ def test_cli_tol_auto(folder, tmp_path):
                         "--database", str(tmp_path / "d.db"), "--tol", "wide"], capture_output=True, text=True,
                        timeout=300)
     assert r.returncode == 2 and "--tol" in r.stderr and "'auto'" in r.stderr
+
+
+def test_the_band_uses_a_spread_subset_of_queries(folder, tmp_path, monkeypatch):
+    """At most MAX_QUERIES queries a pair: the wide pass on every keypoint cost more than the matching."""
+    from episeg_cv.colmap import band as band_module
+
+    full = colmap.match_model(folder["model"], folder["images"], tmp_path / "a.db", tol="auto", verify="pairs").band
+    monkeypatch.setattr(band_module, "MAX_QUERIES", 40)
+    few = colmap.match_model(folder["model"], folder["images"], tmp_path / "b.db", tol="auto", verify="pairs").band
+    assert few["matches"] <= 40 * few["pairs"] < full["matches"]
+    assert few["tol"] == full["tol"] == 2.0 and abs(few["sigma"] - full["sigma"]) < 0.2
