@@ -1,5 +1,8 @@
 """The compiled loop of the track consensus (:mod:`.consensus`): union-find, then RANSAC-style groups.
 
+Components share no observation and no edge, so they are processed independently: one after the
+other (:func:`consensus`) or in blocks on threads (:func:`consensus_parallel`), with the same result.
+
 Every array is checked and laid out by :func:`.consensus.verify_tracks`; these
 functions trust them. Nodes are (image, keypoint) observations, ``0 .. n-1``;
 edges are candidate matches between two nodes with their ratio values.
@@ -9,6 +12,7 @@ from __future__ import annotations
 
 import numba as nb
 import numpy as np
+from numba import prange
 
 
 @nb.njit(cache=True, nogil=True)
@@ -134,13 +138,49 @@ def _ball(a, b, adj_ptr, adj, alive, hops, limit, stamp, mark, queue, depth):
 
 
 @nb.njit(cache=True, nogil=True)
-def consensus(P, node_image, node_xy, eu, ev, er, n_images, tau, max_seeds, max_component, hops):
-    """Consensus groups of the observations: ``(group (n,) int64, group_views (G,) int64, stats (4,) int64)``.
+def _stable_by_key(items, keys, n_keys):
+    """``items`` reordered by ``keys`` (ints in ``[0, n_keys)``, one per item), ties in their order: a
+    counting sort, the order a stable sort by key gives, in linear time."""
+    start = np.zeros(n_keys + 1, np.int64)
+    for q in range(keys.shape[0]):
+        start[keys[q] + 1] += 1
+    for k in range(n_keys):
+        start[k + 1] += start[k]
+    out = np.empty_like(items)
+    for q in range(keys.shape[0]):
+        k = keys[q]
+        out[start[k]] = items[q]
+        start[k] += 1
+    return out
 
-    ``group[v]`` is -1 for an observation in no group. ``stats``: components,
-    groups, components above ``max_component`` nodes, seeds that found no
-    support. See :func:`.consensus.verify_tracks` for the algorithm.
-    """
+
+@nb.njit(cache=True, nogil=True)
+def _sort_by_ratio(edge_order, p, q, er):
+    """Sort ``edge_order[p:q]`` by ``er``, stably (ties keep their order): an insertion sort for the
+    few edges of most components, numba's mergesort for the others."""
+    if q - p <= 32:
+        for i in range(p + 1, q):
+            k = edge_order[i]
+            r = er[k]
+            j = i - 1
+            while j >= p and er[edge_order[j]] > r:
+                edge_order[j + 1] = edge_order[j]
+                j -= 1
+            edge_order[j + 1] = k
+        return
+    seg = edge_order[p:q].copy()
+    o = np.argsort(er[seg], kind="mergesort")
+    for i in range(q - p):
+        edge_order[p + i] = seg[o[i]]
+
+
+@nb.njit(cache=True, nogil=True)
+def _prepare(node_image, eu, ev, er):
+    """Union-find, adjacency and the orders: ``(adj_ptr, adj, node_order, edge_order, comp_node, comp_edge)``.
+
+    Components in the order of their root; ``comp_node[c]:comp_node[c + 1]`` are the positions in
+    ``node_order`` of component ``c``'s nodes, ``comp_edge`` the same in ``edge_order`` (in input
+    order: :func:`_sort_by_ratio` sorts them)."""
     n = node_image.shape[0]
     m = eu.shape[0]
     parent = np.arange(n)
@@ -165,18 +205,43 @@ def consensus(P, node_image, node_xy, eu, ev, er, n_images, tau, max_seeds, max_
         fill[eu[e]] += 1
         adj[fill[ev[e]]] = eu[e]
         fill[ev[e]] += 1
-    # nodes and edges by component; edges by ratio within a component (stable: ties keep input order)
-    node_order = np.argsort(root, kind="mergesort")
-    by_ratio = np.argsort(er, kind="mergesort")
+    # nodes and edges by component, in input order (each component's edges are then sorted by ratio,
+    # by _sort_by_ratio, where the component is processed)
+    node_order = _stable_by_key(np.arange(n), root, n)
     edge_root = np.empty(m, np.int64)
-    for q in range(m):
-        edge_root[q] = root[eu[by_ratio[q]]]
-    edge_order = by_ratio[np.argsort(edge_root, kind="mergesort")]
+    for e in range(m):
+        edge_root[e] = root[eu[e]]
+    edge_order = _stable_by_key(np.arange(m), edge_root, n)
+    n_comp = 0
+    for q in range(n):
+        if q == 0 or root[node_order[q]] != root[node_order[q - 1]]:
+            n_comp += 1
+    comp_node = np.empty(n_comp + 1, np.int64)
+    comp_edge = np.empty(n_comp + 1, np.int64)
+    c = 0
+    p_edge = 0
+    for q in range(n):
+        if q == 0 or root[node_order[q]] != root[node_order[q - 1]]:
+            comp_node[c] = q
+            comp_edge[c] = p_edge
+            r = root[node_order[q]]
+            while p_edge < m and root[eu[edge_order[p_edge]]] == r:
+                p_edge += 1
+            c += 1
+    comp_node[n_comp] = n
+    comp_edge[n_comp] = m
+    return adj_ptr, adj, node_order, edge_order, comp_node, comp_edge
 
-    group = np.full(n, -1, np.int64)
-    group_views = np.zeros(n + 1, np.int64)
-    alive = np.ones(n, np.bool_)
-    dead = np.zeros(m, np.bool_)
+
+@nb.njit(cache=True, nogil=True)
+def _components(c0, c1, P, node_image, node_xy, eu, ev, er, n_images, tau, max_seeds, max_component, hops, adj_ptr, adj,
+                node_order, edge_order, comp_node, comp_edge, alive, dead, mark, group, slot_views, comp_groups,
+                comp_stats):
+    """Components ``c0:c1`` (disjoint node and edge sets: the shared arrays are written in their rows only).
+
+    A group of component ``c`` is numbered ``comp_node[c] + local`` (a component has fewer groups than
+    nodes); :func:`_number_groups` renumbers them in component order. ``comp_groups[c]`` is the
+    number of groups, ``comp_stats[c]`` = (big, unsupported seeds)."""
     best_err = np.full(n_images, np.inf)
     best_node = np.full(n_images, -1, np.int64)
     touched = np.empty(n_images, np.int64)
@@ -184,32 +249,19 @@ def consensus(P, node_image, node_xy, eu, ev, er, n_images, tau, max_seeds, max_
     best_inl = np.empty(n_images, np.int64)
     again = np.empty(n_images, np.int64)
     seeds = np.empty(max_seeds, np.int64)
-    cand = np.empty(n, np.int64)
-    mark = np.zeros(n, np.int64)
-    depth = np.empty(n, np.int64)
+    cand = np.empty(max_component + 2, np.int64)
+    depth = np.empty(max_component + 2, np.int64)
     X = np.empty(3)
     pair = np.empty(2, np.int64)
-    stamp = 0
-    n_groups = 0
-    n_components = 0
-    n_big = 0
-    n_unsupported = 0
-
-    p_node = 0
-    p_edge = 0
-    while p_node < n:
-        r = root[node_order[p_node]]
-        q_node = p_node
-        while q_node < n and root[node_order[q_node]] == r:
-            q_node += 1
-        q_edge = p_edge
-        while q_edge < m and root[eu[edge_order[q_edge]]] == r:
-            q_edge += 1
+    stamp = 0  # (mark is read only for nodes of the component being processed)
+    for c in range(c0, c1):
+        p_node, q_node = comp_node[c], comp_node[c + 1]
+        p_edge, q_edge = comp_edge[c], comp_edge[c + 1]
+        _sort_by_ratio(edge_order, p_edge, q_edge, er)  # lowest ratio first; ties in input order
         nc = q_node - p_node
-        n_components += 1
         big = nc > max_component
-        if big:
-            n_big += 1
+        n_groups = 0
+        n_unsupported = 0
         first = p_edge  # edges before it have a removed or dead end
         while True:
             n_seeds = 0
@@ -224,8 +276,8 @@ def consensus(P, node_image, node_xy, eu, ev, er, n_images, tau, max_seeds, max_
                 e += 1
             if n_seeds == 0:
                 break
+            n_cand = 0
             if not big:  # every alive node of the component
-                n_cand = 0
                 for q in range(p_node, q_node):
                     v = node_order[q]
                     if alive[v]:
@@ -242,11 +294,11 @@ def consensus(P, node_image, node_xy, eu, ev, er, n_images, tau, max_seeds, max_
                 pair[1] = ev[k]
                 if not _triangulate(P, node_image, node_xy, pair, 2, X):
                     continue
-                c = _inliers(P, node_image, node_xy, X, cand, n_cand, tau, best_err, best_node, touched, inl)
-                if c > best_count:
-                    best_count = c
+                cnt = _inliers(P, node_image, node_xy, X, cand, n_cand, tau, best_err, best_node, touched, inl)
+                if cnt > best_count:
+                    best_count = cnt
                     best_seed = k
-                    best_inl[:c] = inl[:c]
+                    best_inl[:cnt] = inl[:cnt]
             if best_count < 2:
                 for s in range(n_seeds):
                     dead[seeds[s]] = True
@@ -258,17 +310,85 @@ def consensus(P, node_image, node_xy, eu, ev, er, n_images, tau, max_seeds, max_
                     stamp += 1
                     n_cand = _ball(eu[best_seed], ev[best_seed], adj_ptr, adj, alive, hops, max_component, stamp,
                                    mark, cand, depth)
-                c = _inliers(P, node_image, node_xy, X, cand, n_cand, tau, best_err, best_node, touched, again)
-                if c >= 2:
-                    best_inl[:c] = again[:c]
-                    count = c
+                cnt = _inliers(P, node_image, node_xy, X, cand, n_cand, tau, best_err, best_node, touched, again)
+                if cnt >= 2:
+                    best_inl[:cnt] = again[:cnt]
+                    count = cnt
+            slot = p_node + n_groups
             for q in range(count):
                 v = best_inl[q]
-                group[v] = n_groups
+                group[v] = slot
                 alive[v] = False
-            group_views[n_groups] = count  # one observation per image
+            slot_views[slot] = count  # one observation per image
             n_groups += 1
-        p_node = q_node
-        p_edge = q_edge
-    stats = np.array([n_components, n_groups, n_big, n_unsupported], np.int64)
-    return group, group_views[:n_groups].copy(), stats
+        comp_groups[c] = n_groups
+        comp_stats[c, 0] = 1 if big else 0
+        comp_stats[c, 1] = n_unsupported
+
+
+@nb.njit(cache=True, nogil=True)
+def _setup(n, m, n_comp):
+    return (np.ones(n, np.bool_), np.zeros(m, np.bool_), np.zeros(n, np.int64), np.full(n, -1, np.int64),
+            np.zeros(n, np.int64), np.zeros(n_comp, np.int64), np.zeros((n_comp, 2), np.int64))
+
+
+@nb.njit(cache=True, nogil=True)
+def _number_groups(group, slot_views, comp_node, comp_groups, comp_stats):
+    """Groups numbered 0, 1, ... in component order (as one pass over the components would):
+    ``(group, group_views, stats)``."""
+    n_comp = comp_groups.shape[0]
+    new_id = np.full(group.shape[0] + 1, -1, np.int64)
+    total = 0
+    for c in range(n_comp):
+        total += comp_groups[c]
+    group_views = np.empty(total, np.int64)
+    g = 0
+    for c in range(n_comp):
+        for local in range(comp_groups[c]):
+            slot = comp_node[c] + local
+            new_id[slot] = g
+            group_views[g] = slot_views[slot]
+            g += 1
+    for v in range(group.shape[0]):
+        if group[v] >= 0:
+            group[v] = new_id[group[v]]
+    stats = np.array([n_comp, total, comp_stats[:, 0].sum(), comp_stats[:, 1].sum()], np.int64)
+    return group, group_views, stats
+
+
+@nb.njit(cache=True, nogil=True)
+def consensus(P, node_image, node_xy, eu, ev, er, n_images, tau, max_seeds, max_component, hops):
+    """Consensus groups of the observations: ``(group (n,) int64, group_views (G,) int64, stats (4,) int64)``.
+
+    ``group[v]`` is -1 for an observation in no group. ``stats``: components,
+    groups, components above ``max_component`` nodes, seeds that found no
+    support. See :func:`.consensus.verify_tracks` for the algorithm.
+    """
+    adj_ptr, adj, node_order, edge_order, comp_node, comp_edge = _prepare(node_image, eu, ev, er)
+    n_comp = comp_node.shape[0] - 1
+    alive, dead, mark, group, slot_views, comp_groups, comp_stats = _setup(node_image.shape[0], eu.shape[0], n_comp)
+    _components(0, n_comp, P, node_image, node_xy, eu, ev, er, n_images, tau, max_seeds, max_component, hops, adj_ptr,
+                adj, node_order, edge_order, comp_node, comp_edge, alive, dead, mark, group, slot_views, comp_groups,
+                comp_stats)
+    return _number_groups(group, slot_views, comp_node, comp_groups, comp_stats)
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def consensus_parallel(P, node_image, node_xy, eu, ev, er, n_images, tau, max_seeds, max_component, hops, blocks):
+    """:func:`consensus` on threads: blocks of components with about equal numbers of edges (components
+    share no node or edge, and the groups are numbered in component order afterwards: the same result)."""
+    adj_ptr, adj, node_order, edge_order, comp_node, comp_edge = _prepare(node_image, eu, ev, er)
+    n_comp = comp_node.shape[0] - 1
+    alive, dead, mark, group, slot_views, comp_groups, comp_stats = _setup(node_image.shape[0], eu.shape[0], n_comp)
+    m = eu.shape[0]
+    nblk = blocks
+    cuts = np.searchsorted(comp_edge, np.arange(nblk + 1) * m // nblk)  # component index at each edge quantile
+    cuts[0] = 0
+    cuts[nblk] = n_comp
+    for b in prange(nblk):
+        c0, c1 = cuts[b], cuts[b + 1]
+        if c1 > c0:
+            _components(c0, c1, P, node_image, node_xy, eu, ev, er, n_images, tau, max_seeds, max_component, hops,
+                        adj_ptr, adj, node_order, edge_order, comp_node, comp_edge, alive, dead, mark, group,
+                        slot_views, comp_groups, comp_stats)
+    return _number_groups(group, slot_views, comp_node, comp_groups, comp_stats)

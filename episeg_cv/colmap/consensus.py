@@ -43,6 +43,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .. import threads
 from .._validation import as_ratio
 from . import _consensus_kernel
 
@@ -191,7 +192,8 @@ def verify_tracks(views, candidates, keypoints, strict: float, tau: float,
         sel = node_image == k
         node_xy[sel] = np.asarray(keypoints(int(k)), dtype=np.float64)[node_kp[sel]]
     P = projection_matrices(views)
-    group, group_views, st = _consensus_kernel.consensus(
+    group, group_views, st = threads.run(
+        _consensus_kernel.consensus, _consensus_kernel.consensus_parallel, m,
         P, node_image, node_xy, eu, ev, ratio, len(views), tau, config.max_seeds, config.max_component, config.hops)
     gu, gv = group[eu], group[ev]
     same = (gu >= 0) & (gu == gv)

@@ -176,3 +176,60 @@ def test_consistent_tracks_are_kept_and_the_order_of_pairs_does_not_matter(seed,
     shuffled, _ = verify_tracks(views, [cands[q] for q in order], lambda k: kp[k], strict=0.68, tau=2.0)
     for q, k in zip(order, shuffled):
         np.testing.assert_array_equal(k, keep[q])
+
+
+@pytest.mark.parametrize("wrong, max_component", [(0.002, 1000), (0.15, 3)])  # 3: "big" components, split locally
+def test_components_on_threads_give_the_serial_result(wrong, max_component):
+    """Thousands of edges: the kernel runs its parallel twin (blocks of components); the kept matches,
+    the groups (numbered in component order) and the counts must be those of one thread, with false
+    edges, tied ratios and components of every size among them."""
+    import episeg_cv
+    from episeg_cv.colmap import _consensus_kernel
+
+    views, _, kp = _scene(n_views=6, n_points=400, seed=3)
+    rng = np.random.default_rng(8)
+    kp = kp + rng.uniform(-0.5, 0.5, kp.shape)
+    cands = []
+    for i, j, p, r in _all_pairs(6, 400, ratio=0.5):
+        false = rng.random(len(p)) < wrong  # false edges: to a random keypoint, merging tracks
+        p = p.copy()
+        p[false, 1] = rng.integers(0, 400, int(false.sum()))
+        cands.append((i, j, p, np.round(rng.uniform(0.3, 0.89, len(p)), 2)))  # rounded: many ties
+    assert sum(len(p) for _, _, p, _ in cands) >= episeg_cv.threads.MIN_PARALLEL_ITEMS
+    config = TrackConsensus(max_component=max_component)
+    calls = []
+    real = _consensus_kernel.consensus_parallel
+
+    def spy(*args):
+        calls.append(args[-1])
+        return real(*args)
+
+    runs = {}
+    for n in (1, 2):
+        episeg_cv.set_num_threads(n)
+        try:
+            _consensus_kernel.consensus_parallel = spy
+            runs[n] = verify_tracks(views, cands, lambda k: kp[k], strict=0.68, tau=2.0, config=config)
+        finally:
+            _consensus_kernel.consensus_parallel = real
+            episeg_cv.set_num_threads(None)
+    if episeg_cv.threads.get_num_threads() > 1:
+        assert calls, "the parallel twin did not run"
+    (k1, s1), (k2, s2) = runs[1], runs[2]
+    assert s1 == s2 and s1["groups"] > 100
+    assert s1["big_components"] > 0 if max_component == 3 else s1["components"] > 100
+    for a, b in zip(k1, k2):
+        np.testing.assert_array_equal(a, b)
+    # and the kernel's own outputs, group by group
+    P = projection_matrices(views)
+    node_image = np.repeat(np.arange(6), 400)
+    node_xy = kp.reshape(-1, 2)
+    eu = np.concatenate([i * 400 + p[:, 0] for i, _, p, _ in cands])
+    ev = np.concatenate([j * 400 + p[:, 1] for _, j, p, _ in cands])
+    er = np.concatenate([r for _, _, _, r in cands])
+    args = (P, node_image, node_xy, eu, ev, er, 6, 2.0, 24, max_component, 2)
+    serial = _consensus_kernel.consensus(*args)
+    for blocks in (1, 3, 16, 64):
+        par = _consensus_kernel.consensus_parallel(*args, blocks)
+        for a, b in zip(serial, par):
+            np.testing.assert_array_equal(a, b)
