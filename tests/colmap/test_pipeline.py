@@ -473,7 +473,7 @@ def test_unreachable_scheduler_fails_fast(folder, tmp_path, monkeypatch):
 
 @pytest.mark.parametrize("kwargs, match", [
     ({"constraint": "none"}, "constraint"), ({"constraint": "arc"}, "constraint"), ({"features": "surf"}, "features"),
-    ({"tol": -1}, "tol"), ({"tol": "wide"}, "tol"), ({"workers": 0}, "workers"),
+    ({"tol": -1}, "tol"), ({"tol": float("inf")}, "tol"), ({"workers": 0}, "workers"),
     ({"depth_range": "near"}, "depth_range"),
     ({"depth_range": (5, 1)}, "zmin < zmax"), ({"pairs": [("view_000.png", "x")]}, "unknown image 'x'"),
     ({"pairs": [("view_000.png", "view_001.png")], "neighbors": 2}, "not both"),
