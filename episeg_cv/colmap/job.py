@@ -63,9 +63,8 @@ def pair_inputs(view1: View, view2: View, store: FeatureStore):
     _, q1, d1 = store.load(view1)
     _, q2, d2 = store.load(view2)
     idx = []
-    for q, d in ((q1, d1), (q2, d2)):
-        ok = np.isfinite(q).all(axis=1)
-        idx.append(None if ok.all() else np.flatnonzero(ok))
+    for q in (q1, q2):  # a flat test first: the row test costs 0.1 ms on 8k keypoints
+        idx.append(None if np.isfinite(q).all() else np.flatnonzero(np.isfinite(q[:, 0]) & np.isfinite(q[:, 1])))
     if idx[0] is not None:
         q1, d1 = q1[idx[0]], d1[idx[0]]
     if idx[1] is not None:
