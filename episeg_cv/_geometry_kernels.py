@@ -85,39 +85,30 @@ def _segments(k0, k1, x1, H, b, zmin, zmax, rect, eps, start, end, valid, line, 
         l0 = b1 * a2 - b2 * a1  # the line b x a, normalised
         l1 = b2 * a0 - b0 * a2
         l2 = b0 * a1 - b1 * a0
-        nrm = np.hypot(l0, l1)
+        nrm = np.sqrt(l0 * l0 + l1 * l1)  # not hypot: 1.4x faster a point; no overflow below 1e150 px
         nrm = nrm if nrm > 0 else np.nan
         line[k, 0], line[k, 1], line[k, 2] = l0 / nrm, l1 / nrm, l2 / nrm
         p_inf[k, 0], p_inf[k, 1] = a0 / a2, a1 / a2
 
 
 @nb.njit(cache=True, nogil=True)
-def _segment_outputs(n):
-    return (np.empty((n, 2)), np.empty((n, 2)), np.empty(n, dtype=np.bool_), np.empty((n, 3)), np.empty((n, 2)),
-            np.empty((n, 3)))
-
-
-@nb.njit(cache=True, nogil=True)
-def segments(x1, H, b, zmin, zmax, rect, eps):
-    """``(start, end, valid, line, p_inf, a)`` of the points ``x1 (N, 2)`` of image 1 (see
+def segments(x1, H, b, zmin, zmax, rect, eps, start, end, valid, line, p_inf, a):
+    """Fill ``start, end, valid, line, p_inf, a`` for the points ``x1 (N, 2)`` of image 1 (see
     :meth:`episeg_cv.TwoViewGeometry.segments`): ``H`` the infinite homography, ``b`` the homogeneous
     epipole, ``zmin`` / ``zmax`` ``(1,)`` or ``(N,)``, ``rect = (xmin, xmax, ymin, ymax)``, ``eps`` the
-    relative cheirality tolerance."""
-    start, end, valid, line, p_inf, a = _segment_outputs(x1.shape[0])
+    relative cheirality tolerance. The caller allocates the outputs with numpy, whose large arrays get
+    transparent huge pages: first-touch page faults of numba's allocations cost as much as the arithmetic."""
     _segments(0, x1.shape[0], x1, H, b, zmin, zmax, rect, eps, start, end, valid, line, p_inf, a)
-    return start, end, valid, line, p_inf, a
 
 
 @nb.njit(cache=True, nogil=True, parallel=True)
-def segments_parallel(x1, H, b, zmin, zmax, rect, eps, blocks):
+def segments_parallel(x1, H, b, zmin, zmax, rect, eps, start, end, valid, line, p_inf, a, blocks):
     """:func:`segments` on threads."""
     n = x1.shape[0]
-    start, end, valid, line, p_inf, a = _segment_outputs(n)
     nblk = blocks
     for c in prange(nblk):
         k0, k1 = _blocks(n, nblk, c)
         _segments(k0, k1, x1, H, b, zmin, zmax, rect, eps, start, end, valid, line, p_inf, a)
-    return start, end, valid, line, p_inf, a
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
@@ -147,20 +138,16 @@ def _line_clip(k0, k1, line, rect, start, end):
 
 
 @nb.njit(cache=True, nogil=True)
-def line_clip(line, rect):
-    """``(start, end)`` of the unit lines ``line (N, 3)`` clipped to ``rect``."""
-    start, end = np.empty((line.shape[0], 2)), np.empty((line.shape[0], 2))
+def line_clip(line, rect, start, end):
+    """Fill ``start, end (N, 2)`` with the unit lines ``line (N, 3)`` clipped to ``rect``."""
     _line_clip(0, line.shape[0], line, rect, start, end)
-    return start, end
 
 
 @nb.njit(cache=True, nogil=True, parallel=True)
-def line_clip_parallel(line, rect, blocks):
+def line_clip_parallel(line, rect, start, end, blocks):
     """:func:`line_clip` on threads."""
     n = line.shape[0]
-    start, end = np.empty((n, 2)), np.empty((n, 2))
     nblk = blocks
     for c in prange(nblk):
         k0, k1 = _blocks(n, nblk, c)
         _line_clip(k0, k1, line, rect, start, end)
-    return start, end

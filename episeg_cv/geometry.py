@@ -142,7 +142,8 @@ class EpipolarSegments:
     def _line_clip(self) -> tuple[np.ndarray, np.ndarray]:
         # computed on first use: guided matching on the segment never needs it
         line = np.ascontiguousarray(self.line)
-        start, end = threads.run(_gk.line_clip, _gk.line_clip_parallel, len(line), line, self._rect)
+        start, end = np.empty((len(line), 2)), np.empty((len(line), 2))
+        threads.run(_gk.line_clip, _gk.line_clip_parallel, len(line), line, self._rect, start, end)
         start.flags.writeable = end.flags.writeable = False
         return start, end
 
@@ -553,7 +554,7 @@ class TwoViewGeometry(EpipolarGeometry):
         One compiled pass per point (numba; float64 without fast-math or
         fused multiply-adds; division by zero gives inf or NaN, as numpy's),
         on every core for large inputs (:func:`episeg_cv.set_num_threads`),
-        with the same bits for every thread count: 5-12 M points/s per core
+        with the same bits for every thread count: 10-15 M points/s per core
         on the machines of ``benchmarks/table1.py``. ``a = H [x1; 1]`` is summed as ``x H[:, 0] + y H[:, 1] + H[:, 2]``,
         which may differ from numpy's ``x1 @ H[:, :2].T + H[:, 2]`` by an
         ulp (the array formulation, given the same ``a``, agrees to the last
@@ -567,8 +568,11 @@ class TwoViewGeometry(EpipolarGeometry):
         zmax = np.ascontiguousarray(np.atleast_1d(zmax), dtype=np.float64)
         rect = _rect(self.image_size2, margin)
         H, b = np.ascontiguousarray(self.infinity_homography), self.epipole_homogeneous
-        start, end, valid, line, p_inf, a = threads.run(_gk.segments, _gk.segments_parallel, n, x1, H, b, zmin, zmax,
-                                                        rect, CHEIRALITY_EPS)
+        # numpy allocates the outputs: its large arrays get huge pages (numba's would fault page by page)
+        start, end, p_inf = np.empty((n, 2)), np.empty((n, 2)), np.empty((n, 2))
+        valid, line, a = np.empty(n, dtype=np.bool_), np.empty((n, 3)), np.empty((n, 3))
+        threads.run(_gk.segments, _gk.segments_parallel, n, x1, H, b, zmin, zmax, rect, CHEIRALITY_EPS,
+                    start, end, valid, line, p_inf, a)
         return EpipolarSegments(start, end, valid, line, p_inf, self.epipole, margin, a, b.copy(), rect)
 
 

@@ -55,7 +55,7 @@ def reference(g, a, zmin, zmax, rect):
         start[~valid] = np.nan
         end[~valid] = np.nan
         line = np.cross(b, a)
-        norm = np.hypot(line[:, 0], line[:, 1])
+        norm = np.sqrt(line[:, 0] ** 2 + line[:, 1] ** 2)
         line = line / np.where(norm > 0, norm, np.nan)[:, None]
         p_inf = a[:, :2] / a[:, 2:3]
         # the whole line, clipped
