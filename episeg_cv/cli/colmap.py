@@ -7,7 +7,7 @@ import sys
 import time
 
 from ..colmap.consensus import TrackConsensus
-from ..colmap.pipeline import VERIFY
+from ..colmap.pipeline import COLLECTION_TOL, VERIFY
 from ..features import PRESETS
 from ..matching import AcceptRule, SearchConfig
 from .args import Formatter, max_features_arg, depth, positive_int, ratio_arg, tol_arg
@@ -57,9 +57,9 @@ def add_parser(sub, parents) -> None:
     p.add_argument("--depth-range", nargs="+", default=["auto"], metavar="SPEC",
                    help="'auto': each image's depth range from the model's 3D points it sees; 'none': (0, inf); "
                         "or 'ZMIN ZMAX' for every image, in the unit of the poses (default: auto)")
-    p.add_argument("--tol", type=tol_arg, default=SearchConfig().tol, metavar="PX|auto",
-                   help="pixel tolerance of the constraint, or 'auto': one band for the collection, from the "
-                        "confident matches of a few pairs around the given poses (which are not corrected)")
+    p.add_argument("--tol", type=tol_arg, default=COLLECTION_TOL, metavar="PX|auto",
+                   help="pixel tolerance of the constraint, or 'auto' (default): one band for the collection, from "
+                        "the confident matches of a few pairs around the given poses (which are not corrected)")
     p.add_argument("--ratio", type=ratio_arg, default=None,
                    help=f"ratio test of the guided matcher, with its mutual check (default: the matcher's, "
                         f"{AcceptRule().ratio})")

@@ -45,10 +45,16 @@ from .triangulation import check_triangulation_folder, triangulate
 from .views import View, is_bounded, require_pycolmap
 
 __all__ = ["MatchReport", "match_model", "triangulate", "load_views", "check_triangulation_folder",
-           "EXHAUSTIVE_WARN", "VERIFY"]
+           "EXHAUSTIVE_WARN", "VERIFY", "COLLECTION_TOL"]
 
 #: Above this many images, exhaustive pairing warns (pairs grow as n^2 / 2).
 EXHAUSTIVE_WARN = 300
+
+#: The default ``tol`` of a collection: one band from its confident matches (:mod:`.band`). With the
+#: track consensus's looser edges (``TrackConsensus.loose = 1``) it gave more accurate 3D points than
+#: ``tol=2`` on the real dinoSparseRing and two synthetic rooms, with COLMAP's features and with ours, at
+#: a higher accurate fraction on the rooms (``benchmarks/colmap.py``).
+COLLECTION_TOL = "auto"
 
 #: The values of ``verify``: the track consensus of the whole collection, or each pair on its own.
 VERIFY = ("tracks", "pairs")
@@ -238,6 +244,8 @@ def match_model(model, image_dir, database, *, pairs=None, neighbors=None,
         around the given poses, which are never corrected:
         :mod:`~episeg_cv.colmap.band`). Its ``depth_range`` must be left at
         ``(0, inf)``: the collection's come from ``depth_range``, one per image.
+        Default: ``constraint="segment"`` and ``tol=`` :data:`COLLECTION_TOL`
+        (``"auto"``), unless ``search`` or ``tol=`` is given.
     rule : AcceptRule, optional
         The acceptance rule of each pair (see :func:`~episeg_cv.match_descriptors`);
         with the track consensus, its ratio is the consensus's strict ratio.
@@ -288,6 +296,8 @@ def match_model(model, image_dir, database, *, pairs=None, neighbors=None,
     """
     require_pycolmap()  # fail before any work when it is missing
     warn = log or (lambda msg: print(msg, file=sys.stderr))
+    if search is None and "tol" not in options:
+        options = {**options, "tol": COLLECTION_TOL}
     search, rule = resolve(search, rule, options)
     if search.constraint == "none":
         raise ValueError("constraint must be 'segment' or 'line' here ('none' has no geometry to use)")

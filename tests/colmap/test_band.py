@@ -56,7 +56,7 @@ def _same(a, b):
 def test_exact_poses_give_the_fixed_band_and_a_tighter_consensus(folder, tmp_path):
     m, im = folder["model"], folder["images"]
     read = colmap.read_database_matches
-    ref = colmap.match_model(m, im, tmp_path / "ref.db", verify="pairs")
+    ref = colmap.match_model(m, im, tmp_path / "ref.db", tol=2.0, verify="pairs")
     auto = colmap.match_model(m, im, tmp_path / "auto.db", tol="auto", verify="pairs")
     b = auto.band
     assert b["tol"] == 2.0 and b["sigma"] < 0.5 and b["matches"] >= 100 and b["pairs"] == 6 and not b["fallback"]
@@ -70,15 +70,19 @@ def test_exact_poses_give_the_fixed_band_and_a_tighter_consensus(folder, tmp_pat
     _same(read(tmp_path / "tracks.db"), read(tmp_path / "tau1.db"))
     # a tolerance the caller gives is kept
     colmap.match_model(m, im, tmp_path / "given.db", tol="auto", verify=TrackConsensus(tau=2.0))
-    colmap.match_model(m, im, tmp_path / "default.db")
-    _same(read(tmp_path / "given.db"), read(tmp_path / "default.db"))
+    colmap.match_model(m, im, tmp_path / "fixed.db", tol=2.0)
+    _same(read(tmp_path / "given.db"), read(tmp_path / "fixed.db"))
+    # tol="auto" is the collection's default
+    default = colmap.match_model(m, im, tmp_path / "default.db")
+    assert default.band == tracks.band
+    _same(read(tmp_path / "default.db"), read(tmp_path / "tracks.db"))
 
 
 def test_noisy_poses_widen_the_band_and_keep_more_true_matches(folder, tmp_path):
     views, _ = colmap.load_model(folder["model"])
     rng = np.random.default_rng(3)
     noisy = [dataclasses.replace(v, R=_rotation(rng.normal(size=3), 0.4) @ v.R) for v in views]
-    fixed = colmap.match_model(noisy, folder["images"], tmp_path / "fixed.db", log=lambda m: None)
+    fixed = colmap.match_model(noisy, folder["images"], tmp_path / "fixed.db", tol=2.0, log=lambda m: None)
     auto = colmap.match_model(noisy, folder["images"], tmp_path / "auto.db", tol="auto", log=lambda m: None)
     assert fixed.band == {} and auto.band["tol"] > 3.0
     assert _true_inliers(tmp_path / "auto.db", views) > 1.2 * _true_inliers(tmp_path / "fixed.db", views)
@@ -112,11 +116,17 @@ def test_sampled_pairs_spread_over_the_list(n, k):
 
 
 def test_cli_tol_auto(folder, tmp_path):
+    for name, tol in (("c.db", ["--tol", "auto"]), ("default.db", [])):  # auto is the default
+        r = subprocess.run([sys.executable, "-m", "episeg_cv.cli", "colmap", str(folder["model"]),
+                            str(folder["images"]), "--database", str(tmp_path / name), *tol], capture_output=True,
+                           text=True, timeout=300)
+        assert r.returncode == 0, r.stderr
+        assert "band (tol auto): 2.00 px" in r.stdout
     r = subprocess.run([sys.executable, "-m", "episeg_cv.cli", "colmap", str(folder["model"]), str(folder["images"]),
-                        "--database", str(tmp_path / "c.db"), "--tol", "auto"], capture_output=True, text=True,
+                        "--database", str(tmp_path / "e.db"), "--tol", "2"], capture_output=True, text=True,
                        timeout=300)
     assert r.returncode == 0, r.stderr
-    assert "band (tol auto): 2.00 px" in r.stdout
+    assert "band (tol auto)" not in r.stdout
     r = subprocess.run([sys.executable, "-m", "episeg_cv.cli", "colmap", str(folder["model"]), str(folder["images"]),
                         "--database", str(tmp_path / "d.db"), "--tol", "wide"], capture_output=True, text=True,
                        timeout=300)

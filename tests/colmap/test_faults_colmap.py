@@ -54,7 +54,7 @@ def leftovers(folder):
 
 def test_resume_refuses_other_settings_and_changed_images(work):
     db = work / "done.db"
-    with pytest.raises(ValueError, match=r"search\.tol was 2\.0, now 5\.0"):
+    with pytest.raises(ValueError, match=r"search\.tol was 'auto', now 5\.0"):
         match(work, db, resume=True, tol=5.0)
     with pytest.raises(ValueError, match=r"rule\.ratio was 0\.68, now 0\.9"):
         match(work, db, resume=True, ratio=0.9)

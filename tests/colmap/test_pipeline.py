@@ -522,7 +522,7 @@ def test_cli_colmap_and_triangulate(folder, tmp_path):
     (["--features", "database"], "does not exist; --features database reads the features from it"),
     (["--features", "database", "--detector", "orb"], "--detector and --max-features apply to --features extract"),
     (["--verify", "pairs", "--loose-ratio", "0.8"], "--loose-ratio applies to --verify tracks"),
-    (["--ratio", "0.95"], "loose ratio (0.9) must be above the pair rule's ratio (0.95)"),
+    (["--ratio", "0.95", "--loose-ratio", "0.9"], "loose ratio (0.9) must be above the pair rule's ratio (0.95)"),
 ])
 def test_cli_errors_are_one_line(folder, tmp_path, extra, match):
     (tmp_path / "pairs.txt").write_text("view_000.png ghost.png\n")
