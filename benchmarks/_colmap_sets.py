@@ -210,16 +210,16 @@ def pycolmap_guided(views, features_db, database, max_error: float = 4.0) -> flo
 # The issue-14 section: same features, end to end, on the real set and synthetic rooms
 # --------------------------------------------------------------------------------------
 #: The library's defaults, on COLMAP's features and end to end: what the goals are checked on.
-DEFAULT_SAME = "ours on COLMAP's features, track consensus (default)"
-DEFAULT_E2E = "ours end to end, track consensus (default)"
-#: label -> (features, verify, tol) of ``match_model``; pycolmap's two pipelines are run separately.
+DEFAULT_SAME = "ours on COLMAP's features, track consensus, tol auto (default)"
+DEFAULT_E2E = "ours end to end, track consensus, tol auto (default)"
+#: label -> (features, verify, tol, the consensus's loose ratio); None: the library's default.
 OURS = {
-    "ours on COLMAP's features, pair rule": ("database", "pairs", 2.0),
-    DEFAULT_SAME: ("database", "tracks", 2.0),
-    "ours on COLMAP's features, track consensus, tol auto": ("database", "tracks", "auto"),
-    "ours end to end, pair rule": ("collection", "pairs", 2.0),
-    DEFAULT_E2E: ("collection", "tracks", 2.0),
-    "ours end to end, track consensus, tol auto": ("collection", "tracks", "auto"),
+    "ours on COLMAP's features, pair rule, tol 2": ("database", "pairs", 2.0, None),
+    "ours on COLMAP's features, previous default (tol 2, edges below ratio 0.9)": ("database", "tracks", 2.0, 0.9),
+    DEFAULT_SAME: ("database", "tracks", None, None),
+    "ours end to end, pair rule, tol 2": ("collection", "pairs", 2.0, None),
+    "ours end to end, previous default (tol 2, edges below ratio 0.9)": ("collection", "tracks", 2.0, 0.9),
+    DEFAULT_E2E: ("collection", "tracks", None, None),
 }
 PYCOLMAP = "pycolmap extract + match_exhaustive"
 GUIDED = "pycolmap match_guided (known poses, CALIBRATED)"
@@ -263,12 +263,14 @@ def run_set(name, model, image_dir, views, quality, work: Path, max_features: in
             entry["seconds_matching"] = pycolmap_guided(views, features_db, db)
             entry["seconds_features"] = seconds_extract
         else:
-            features, verify, tol = OURS[m]
+            features, verify, tol, loose = OURS[m]
             if features == "collection":
                 db.unlink()
                 features = PRESETS["collection"].replace(max_features=max_features)
             notes = []
-            report = colmap.match_model(model, image_dir, db, features=features, verify=verify, tol=tol,
+            given = ({} if tol is None else {"tol": tol})
+            verify = verify if loose is None else colmap.TrackConsensus(loose=loose)
+            report = colmap.match_model(model, image_dir, db, features=features, verify=verify, **given,
                                         workers=workers,
                                         cache_dir=work / f"{len(out)}.features", log=notes.append)
             entry.update(seconds_matching=report.seconds_matching, seconds_verify=report.seconds_verify,
@@ -386,9 +388,12 @@ def markdown(res: dict) -> list:
              "with a CALIBRATED `TwoViewGeometry` (E, F, cam2_from_cam1) built from the poses, on the same features. "
              "Ours on COLMAP's features: `match_model(..., features=\"database\")` on a copy of that database. "
              "Ours end to end: `match_model` with the defaults (the `\"collection\"` SIFT preset). Pair rule = "
-             "`verify=\"pairs\"` (ratio 0.68 per pair); track consensus = `verify=\"tracks\"` (the default). "
-             "tol auto = `tol=\"auto\"`: one band for the collection from the confident matches of up to 16 "
-             "pairs around the given poses (`episeg_cv.colmap.band`; the band found is in the JSON).")
+             "`verify=\"pairs\"` (ratio 0.68 per pair); track consensus = `verify=\"tracks\"` (the default), whose "
+             "edges are every mutual candidate (`TrackConsensus.loose = 1`, the default; the previous default "
+             "took those below ratio 0.9). tol auto = `tol=\"auto\"` (the default for collections): one band "
+             "for the collection from the confident matches of up to 16 pairs around the given poses "
+             "(`episeg_cv.colmap.band`; the band found is in the JSON); tol 2 = the fixed 2 px, the previous "
+             "default.")
     L.append("- **Times**: matching = `match_exhaustive` / the `match_guided` loop / `MatchReport.seconds_matching` "
              "(matching, consensus and database writes; ours on all cores, threads). Total = features + matching + "
              "3v triangulation. One run each: counts are deterministic except pycolmap's RANSAC.\n")

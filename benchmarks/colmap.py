@@ -639,7 +639,7 @@ def write_markdown(path: Path, res: dict) -> None:
              "`triangulate_points` into a Reconstruction holding the true poses with the database's image ids.")
     L.append(f"- Ours: `colmap.match_model(model, images, db, constraint=..., depth_range=..., "
              f"max_features={MAX_FEATURES}, workers=1)` (OpenCV SIFT as the library sets it up, default ratio "
-             f"{res['config']['ratio']}, fresh feature cache every run, so feature time is included), then `colmap.triangulate` (the same `pycolmap.triangulate_points`, default "
+             f"{res['config']['ratio']}, the collection defaults `tol=\"auto\"` and the track consensus, fresh feature cache every run, so feature time is included), then `colmap.triangulate` (the same `pycolmap.triangulate_points`, default "
              "options).")
     L.append(f"- **Accurate point**: projected with the true pose into *every* image of its track, its depth `z` "
              f"in that camera is within {100 * ACCURACY:.0f} % of the rendered depth at the rounded pixel "
