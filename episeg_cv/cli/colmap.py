@@ -68,8 +68,8 @@ def add_parser(sub, parents) -> None:
                         "ratio between --ratio and --loose-ratio needs a track of 3 views); pairs: each pair's "
                         "matches under --ratio alone, written as they come")
     p.add_argument("--loose-ratio", type=ratio_arg, default=None, metavar="R",
-                   help=f"largest ratio of a candidate the track consensus may keep (default: "
-                        f"{TrackConsensus().loose})")
+                   help=f"candidates below this ratio are edges of the track consensus (default: "
+                        f"{TrackConsensus().loose}, every mutual candidate)")
     p.add_argument("--workers", type=positive_int, default=1, metavar="N",
                    help="threads for features and pairs (the compiled kernels run in parallel)")
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",

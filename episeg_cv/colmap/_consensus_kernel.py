@@ -236,8 +236,14 @@ def _prepare(node_image, eu, ev, er):
 @nb.njit(cache=True, nogil=True)
 def _components(c0, c1, P, node_image, node_xy, eu, ev, er, n_images, tau, max_seeds, max_component, hops, adj_ptr, adj,
                 node_order, edge_order, comp_node, comp_edge, alive, dead, mark, group, slot_views, comp_groups,
-                comp_stats):
+                comp_stats, bound):
     """Components ``c0:c1`` (disjoint node and edge sets: the shared arrays are written in their rows only).
+
+    ``bound[k]`` is an upper bound of seed edge ``k``'s support, kept from the round that last counted it:
+    observations only leave the candidates (into groups), so a support can only shrink, and a seed whose
+    bound does not beat the best support of the round so far is not counted again. The first seed with
+    the largest support still wins, so the groups are those of counting every seed every round (a big
+    component's neighbourhood cut at ``max_component`` could gain observations: its count is no bound).
 
     A group of component ``c`` is numbered ``comp_node[c] + local`` (a component has fewer groups than
     nodes); :func:`_number_groups` renumbers them in component order. ``comp_groups[c]`` is the
@@ -269,13 +275,16 @@ def _components(c0, c1, P, node_image, node_xy, eu, ev, er, n_images, tau, max_s
             while e < q_edge and n_seeds < max_seeds:
                 k = edge_order[e]
                 if alive[eu[k]] and alive[ev[k]] and not dead[k]:
-                    if n_seeds == 0:
-                        first = e
                     seeds[n_seeds] = k
                     n_seeds += 1
                 e += 1
             if n_seeds == 0:
                 break
+            # an edge with a removed or dead end stays so: the scanned ones are dropped, the seeds moved up to
+            # the unscanned rest (same order), so that no round scans them again
+            first = e - n_seeds
+            for s in range(n_seeds):
+                edge_order[first + s] = seeds[s]
             n_cand = 0
             if not big:  # every alive node of the component
                 for q in range(p_node, q_node):
@@ -287,14 +296,18 @@ def _components(c0, c1, P, node_image, node_xy, eu, ev, er, n_images, tau, max_s
             best_seed = -1
             for s in range(n_seeds):
                 k = seeds[s]
+                if bound[k] <= best_count:  # cannot win this round
+                    continue
                 if big:
                     stamp += 1
                     n_cand = _ball(eu[k], ev[k], adj_ptr, adj, alive, hops, max_component, stamp, mark, cand, depth)
                 pair[0] = eu[k]
                 pair[1] = ev[k]
                 if not _triangulate(P, node_image, node_xy, pair, 2, X):
+                    bound[k] = 0  # (the same two rays every round)
                     continue
                 cnt = _inliers(P, node_image, node_xy, X, cand, n_cand, tau, best_err, best_node, touched, inl)
+                bound[k] = cnt if not (big and n_cand >= max_component) else n_images
                 if cnt > best_count:
                     best_count = cnt
                     best_seed = k
@@ -327,9 +340,10 @@ def _components(c0, c1, P, node_image, node_xy, eu, ev, er, n_images, tau, max_s
 
 
 @nb.njit(cache=True, nogil=True)
-def _setup(n, m, n_comp):
+def _setup(n, m, n_comp, n_images):
     return (np.ones(n, np.bool_), np.zeros(m, np.bool_), np.zeros(n, np.int64), np.full(n, -1, np.int64),
-            np.zeros(n, np.int64), np.zeros(n_comp, np.int64), np.zeros((n_comp, 2), np.int64))
+            np.zeros(n, np.int64), np.zeros(n_comp, np.int64), np.zeros((n_comp, 2), np.int64),
+            np.full(m, n_images, np.int64))  # a group holds at most one observation per image
 
 
 @nb.njit(cache=True, nogil=True)
@@ -366,10 +380,11 @@ def consensus(P, node_image, node_xy, eu, ev, er, n_images, tau, max_seeds, max_
     """
     adj_ptr, adj, node_order, edge_order, comp_node, comp_edge = _prepare(node_image, eu, ev, er)
     n_comp = comp_node.shape[0] - 1
-    alive, dead, mark, group, slot_views, comp_groups, comp_stats = _setup(node_image.shape[0], eu.shape[0], n_comp)
+    alive, dead, mark, group, slot_views, comp_groups, comp_stats, bound = _setup(node_image.shape[0], eu.shape[0],
+                                                                                 n_comp, n_images)
     _components(0, n_comp, P, node_image, node_xy, eu, ev, er, n_images, tau, max_seeds, max_component, hops, adj_ptr,
                 adj, node_order, edge_order, comp_node, comp_edge, alive, dead, mark, group, slot_views, comp_groups,
-                comp_stats)
+                comp_stats, bound)
     return _number_groups(group, slot_views, comp_node, comp_groups, comp_stats)
 
 
@@ -379,7 +394,8 @@ def consensus_parallel(P, node_image, node_xy, eu, ev, er, n_images, tau, max_se
     share no node or edge, and the groups are numbered in component order afterwards: the same result)."""
     adj_ptr, adj, node_order, edge_order, comp_node, comp_edge = _prepare(node_image, eu, ev, er)
     n_comp = comp_node.shape[0] - 1
-    alive, dead, mark, group, slot_views, comp_groups, comp_stats = _setup(node_image.shape[0], eu.shape[0], n_comp)
+    alive, dead, mark, group, slot_views, comp_groups, comp_stats, bound = _setup(node_image.shape[0], eu.shape[0],
+                                                                                 n_comp, n_images)
     m = eu.shape[0]
     nblk = blocks
     cuts = np.searchsorted(comp_edge, np.arange(nblk + 1) * m // nblk)  # component index at each edge quantile
@@ -390,5 +406,5 @@ def consensus_parallel(P, node_image, node_xy, eu, ev, er, n_images, tau, max_se
         if c1 > c0:
             _components(c0, c1, P, node_image, node_xy, eu, ev, er, n_images, tau, max_seeds, max_component, hops,
                         adj_ptr, adj, node_order, edge_order, comp_node, comp_edge, alive, dead, mark, group,
-                        slot_views, comp_groups, comp_stats)
+                        slot_views, comp_groups, comp_stats, bound)
     return _number_groups(group, slot_views, comp_node, comp_groups, comp_stats)
