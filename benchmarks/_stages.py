@@ -6,8 +6,8 @@ public (non-underscore) names; a stage that has no call of its own is the differ
 - checks: ``MatchInputs.check`` (validation of the four arrays, once per call);
 - segments: ``geometry.segments(points1, margin=tol)`` (and the clipped lines for ``"line"``);
 - index: ``CandidateIndex(...)`` minus the segments;
-- scan: ``CandidateIndex.scan`` on a built index (descriptor gather, the exact test, the scores, top-2 and
-  the best query of each keypoint);
+- scan: ``CandidateIndex.scan`` on a built index (the exact test, the scores, top-2 and the best query of
+  each keypoint);
 - acceptance: ``guided.match`` on a built index minus the scan (padding references, ratio, mutual check,
   the exact distances of the kept pairs);
 - DMatch: ``SegmentMatcher.match`` minus ``match_descriptors`` on the same built index minus the keypoint
@@ -43,8 +43,7 @@ a stage without a call of its own is the difference of two calls:
 - **checks**: `MatchInputs.check` (validation of the four arrays);
 - **segments**: `geometry.segments(points1, margin=tol)` (and the clipped lines for `"line"`);
 - **index**: `CandidateIndex(...)` minus the segments;
-- **scan**: `CandidateIndex.scan` on a built index (descriptor gather, exact test, scores, top-2, best query per
-  keypoint);
+- **scan**: `CandidateIndex.scan` on a built index (exact test, scores, top-2, best query per keypoint);
 - **acceptance**: `guided.match` on a built index minus the scan (padding references, ratio, mutual check, exact
   distances of the kept pairs);
 - **DMatch**: `SegmentMatcher.match` minus `match_descriptors` (both on the built index) minus the keypoint

@@ -130,10 +130,10 @@ def _scan_rows(r0, r1, q_sorted, q_start, q_stop, t_sorted, geo, y, is_line, tol
                idx, sc, counts, col_s, col_i, buf_p, buf_s):
     """Rows ``r0:r1`` of :func:`knn_scan`, the column best merged into ``col_s / col_i``.
 
-    Per row: (1) the slice's candidates compacted into ``buf_p`` without a data-dependent branch,
-    (2) their scores into ``buf_s``, (3) the top-k of the query and the column best of each keypoint
-    updated with selects (k <= 2) or by insertion (k > 2). ``B`` is in slice order (``B[p]`` is keypoint
-    ``t_sorted[p]``). Orders: a query's neighbours by (score, keypoint index), a keypoint's best query
+    Per row: (1) the slice's candidates (keypoint indices) compacted into ``buf_p`` without a
+    data-dependent branch, (2) their scores into ``buf_s``, (3) the top-k of the query and the column
+    best of each keypoint updated with selects (k <= 2) or by insertion (k > 2). ``B`` is indexed by
+    keypoint. Orders: a query's neighbours by (score, keypoint index), a keypoint's best query
     by (score, query index); index -1 is "none" and loses every tie.
     """
     k = idx.shape[1]
@@ -142,7 +142,7 @@ def _scan_rows(r0, r1, q_sorted, q_start, q_stop, t_sorted, geo, y, is_line, tol
         n0, n1, off, d0, d1, mid, half = geo[q, 0], geo[q, 1], geo[q, 2], geo[q, 3], geo[q, 4], geo[q, 5], geo[q, 6]
         m = 0
         for p in range(q_start[r], q_stop[r]):  # (1)
-            buf_p[m] = p
+            buf_p[m] = t_sorted[p]
             m += _is_candidate(n0, n1, off, d0, d1, mid, half, y[p, 0], y[p, 1], is_line, tol, tol2)
         if norm == HAMMING:  # (2) (a loop per norm: the score functions keep their fast-math sums)
             for c in range(m):
@@ -158,7 +158,7 @@ def _scan_rows(r0, r1, q_sorted, q_start, q_stop, t_sorted, geo, y, is_line, tol
             s1, t1 = sc[q, 0], idx[q, 0]
             s2, t2 = (sc[q, 1], idx[q, 1]) if k == 2 else (np.float32(np.inf), -1)
             for c in range(m):
-                t = t_sorted[buf_p[c]]
+                t = buf_p[c]
                 s = buf_s[c]
                 lt1 = (s < s1) | ((s == s1) & ((t1 < 0) | (t < t1)))
                 lt2 = (s < s2) | ((s == s2) & ((t2 < 0) | (t < t2)))
@@ -176,7 +176,7 @@ def _scan_rows(r0, r1, q_sorted, q_start, q_stop, t_sorted, geo, y, is_line, tol
                 sc[q, 1], idx[q, 1] = s2, t2
         else:
             for c in range(m):
-                t = t_sorted[buf_p[c]]
+                t = buf_p[c]
                 s = buf_s[c]
                 last = sc[q, k - 1]
                 if s < last or (s == last and (idx[q, k - 1] < 0 or t < idx[q, k - 1])):
@@ -206,7 +206,8 @@ def knn_scan(q_sorted, q_start, q_stop, t_sorted, geo, y, is_line, tol, tol2, A,
              idx, sc, counts, col_s, col_i):
     """The ``k`` best candidates of each query, the best query of each keypoint, and candidate counts.
 
-    ``A (N1, D)`` are the query descriptors and ``B (S, D)`` those of the keypoints in slice order.
+    ``A (N1, D)`` are the query descriptors and ``B (N2, D)`` those of the keypoints (read in place: the
+    queries of a bucket share most of their candidates, so their rows stay in cache).
 
     *Accumulates* into what it is given, so that several indexes (groups of queries) can be scanned
     into the same arrays: ``idx (N1, k)`` / ``sc (N1, k)`` (best first; ties by the smaller keypoint

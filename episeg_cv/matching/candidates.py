@@ -22,7 +22,8 @@ is then applied to each keypoint of the slice, in compiled code
 The line and the segment use the same index; the segment's shorter ``rho``
 intervals give shorter slices, so it does less work.
 
-The pencil angle is built from an orthonormal basis of the lines through the
+The pencil angle (compared as a cheaper pseudo-angle with the same order, see
+:mod:`._index_kernels`) is built from an orthonormal basis of the lines through the
 (unit) homogeneous epipole, so an epipole at infinity (``t_3 = 0``) or very
 far needs no special case. For pure rotation (``t = 0``) there is no pencil;
 every segment is a point and the index falls back to one bucket with ``rho``
@@ -42,7 +43,7 @@ from .config import SearchConfig, resolve
 
 __all__ = ["CandidateIndex"]
 
-#: Descriptors gathered into slice order and per-thread column arrays, reused across scans.
+#: Per-thread column arrays of the parallel scan, reused across scans.
 _SCRATCH = threads.Scratch()
 #: Blocks of rows per thread in the parallel scan (evens out uneven slices).
 BLOCKS_PER_THREAD = 4
@@ -144,19 +145,17 @@ class CandidateIndex:
         indexes over disjoint groups of queries can be scanned into the same arrays. The result is
         the same for every thread count (:func:`episeg_cv.set_num_threads`).
         """
-        rows, n_s = len(self.q_sorted), len(self.t_sorted)
+        rows = len(self.q_sorted)
         if rows == 0:
             return
-        b_sorted = _SCRATCH.get("b_sorted", (n_s, b.shape[1]), b.dtype)  # each slice's rows contiguous
-        _gather(b, self.t_sorted, b_sorted)
         if not threads.use_parallel(rows):
-            self.run(_kernels.knn_scan, a, b_sorted, norm, idx, sc, counts, col_s, col_i)
+            self.run(_kernels.knn_scan, a, b, norm, idx, sc, counts, col_s, col_i)
             return
         n = threads.get_num_threads()
         bounds = _kernels.work_bounds(self.q_start, self.q_stop, BLOCKS_PER_THREAD * n)
         tcol_s = _SCRATCH.get("tcol_s", (n, len(col_s)), np.float32)
         tcol_i = _SCRATCH.get("tcol_i", (n, len(col_i)), col_i.dtype)
-        threads.call_parallel(self.run, _kernels.knn_scan_parallel, a, b_sorted, norm, idx, sc, counts, col_s,
+        threads.call_parallel(self.run, _kernels.knn_scan_parallel, a, b, norm, idx, sc, counts, col_s,
                               col_i, bounds, tcol_s, tcol_i)
 
     def candidate_lists(self) -> tuple[np.ndarray, np.ndarray]:
@@ -204,8 +203,8 @@ class CandidateIndex:
         c0, c1 = float(self._c[0]), float(self._c[1])
         if pencil is None:  # pure rotation: every segment is a point; one bucket, rho along x
             q_sorted, qb = q_ok, np.zeros(q_ok.size, dtype=np.intp)
-            edges = np.array([0.0, np.pi])
-            lo, width = np.zeros(n2), np.full(n2, np.pi)
+            edges = np.array([0.0, _ik.PERIOD])
+            lo, width = np.zeros(n2), np.full(n2, _ik.PERIOD)
         else:
             e, u, v = pencil
             # queries: the pencil angle of their epipolar line, taken in normalised coordinates; in pencil
@@ -215,7 +214,7 @@ class CandidateIndex:
             order = np.argsort(q_phi)
             q_sorted, q_phi = q_ok[order], q_phi[order]
             n_b = max(1, int(np.ceil(q_ok.size / bucket_size)))
-            edges = np.concatenate([[0.0], q_phi[(np.arange(1, n_b) * q_ok.size) // n_b], [np.pi]])
+            edges = np.concatenate([[0.0], q_phi[(np.arange(1, n_b) * q_ok.size) // n_b], [_ik.PERIOD]])
             qb = np.clip(np.searchsorted(edges, q_phi, side="right") - 1, 0, n_b - 1)
             # keypoints: the interval of pencil angles of lines within tol of them
             lo, width = threads.run(_ik.pencil_intervals, _ik.pencil_intervals_parallel, n2, e, u, v, c0, c1,

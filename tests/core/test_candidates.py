@@ -294,3 +294,17 @@ def test_bad_input():
         CandidateIndex(g, bad, p2)
     with pytest.raises(ValueError, match="points2"):
         CandidateIndex(g, p1, p2[:, :1])
+
+
+def test_pseudo_angles_keep_the_order_of_angles_mod_pi():
+    """The index compares pencil pseudo-angles instead of arctan2(b, a) % pi: same order, period 2."""
+    from episeg_cv.matching._index_kernels import PERIOD, _pseudo_angle
+
+    rng = np.random.default_rng(0)
+    theta = np.sort(np.concatenate([rng.uniform(0, np.pi, 2000), [0.0, np.pi / 2, np.pi / 4, 3 * np.pi / 4]]))
+    scale = rng.uniform(1e-6, 1e6, theta.size)
+    sign = rng.choice([-1.0, 1.0], theta.size)  # a line's direction either way: the same angle mod pi
+    p = np.array([_pseudo_angle(s * r * np.sin(t), s * r * np.cos(t)) for t, r, s in zip(theta, scale, sign)])
+    assert np.all((p >= 0) & (p < PERIOD)) and np.all(np.diff(p) > 0)
+    assert _pseudo_angle(0.0, 1.0) == 0.0 and _pseudo_angle(1.0, 0.0) == 1.0 and _pseudo_angle(0.0, -1.0) == 0.0
+    assert _pseudo_angle(0.0, 0.0) == 0.0 and np.isnan(_pseudo_angle(np.nan, 1.0))
