@@ -85,7 +85,7 @@ def _segments(k0, k1, x1, H, b, zmin, zmax, rect, eps, start, end, valid, line, 
         l0 = b1 * a2 - b2 * a1  # the line b x a, normalised
         l1 = b2 * a0 - b0 * a2
         l2 = b0 * a1 - b1 * a0
-        nrm = np.sqrt(l0 * l0 + l1 * l1)  # not hypot: 1.4x faster a point; no overflow below 1e150 px
+        nrm = np.sqrt(l0 * l0 + l1 * l1)  # not hypot: 1.4x faster; overflows only past 1e154
         nrm = nrm if nrm > 0 else np.nan
         line[k, 0], line[k, 1], line[k, 2] = l0 / nrm, l1 / nrm, l2 / nrm
         p_inf[k, 0], p_inf[k, 1] = a0 / a2, a1 / a2

@@ -10,9 +10,9 @@ its unit epipolar line (zero where undefined), ``y (N2, 2)`` the keypoints of im
 ``phi`` are taken in normalised coordinates ``(x - c) / s`` of image 2, in the basis ``(u, v)`` of the
 lines through the unit homogeneous epipole ``e``, as *pseudo-angles* in ``[0, PERIOD)``: a strictly
 increasing function of the angle mod pi (:func:`_pseudo_angle`, one division instead of an arctangent).
-The index only sorts and compares them, circularly, so any such function gives the same buckets. ``edges (n_b + 1,)`` bound the
-pencil buckets; ``span`` scales the position ``rho`` along a bucket's direction into a key
-``bucket + rho / span + 1/2`` that sorts by bucket, then by ``rho``.
+The index only sorts and compares them, circularly, so any such function gives the same buckets.
+``edges (n_b + 1,)`` bound the pencil buckets; ``span`` scales the position ``rho`` along a bucket's
+direction into a key ``bucket + rho / span + 1/2`` that sorts by bucket, then by ``rho``.
 """
 
 from __future__ import annotations
