@@ -45,6 +45,13 @@ def _pseudo_angle(b, a):
 
 
 @nb.njit(inline="always")
+def _wrap(x):
+    """``x % PERIOD`` for ``x`` in ``(-PERIOD, PERIOD)`` (the same value: ``fmod`` of such ``x`` is ``x``),
+    without the division of a general modulo."""
+    return x + PERIOD if x < 0.0 else x
+
+
+@nb.njit(inline="always")
 def _blocks(n, nblk, c):
     """Items ``[lo, hi)`` of block ``c`` of ``nblk``."""
     return c * n // nblk, (c + 1) * n // nblk
@@ -205,8 +212,8 @@ def _intervals(k0, k1, e, u, v, c0, c1, s, tol, y, lo, width):
         tau = tol / np.sqrt(max(1.0 - ratio * ratio, 1e-18)) * (1 + 1e-9) + 1e-9
         a, _, _ = _pencil_angle(e, u, v, c0, c1, s, y[k, 0] - tau * l0 / h, y[k, 1] - tau * l1 / h)
         b, _, _ = _pencil_angle(e, u, v, c0, c1, s, y[k, 0] + tau * l0 / h, y[k, 1] + tau * l1 / h)
-        w = (b - a) % PERIOD
-        if (phi - a) % PERIOD > w:  # the arc from a to b must contain phi; otherwise it is the other one
+        w = _wrap(b - a)  # (pseudo-angles are in [0, PERIOD))
+        if _wrap(phi - a) > w:  # the arc from a to b must contain phi; otherwise it is the other one
             lo[k] = b
             width[k] = PERIOD - w
         else:
@@ -242,42 +249,79 @@ def pencil_intervals_parallel(e, u, v, c0, c1, s, tol, y, blocks):
     return lo, width
 
 
-@nb.njit(inline="always")
-def _bucket_range(lo, width, edges):
-    """Buckets ``k0..k1`` that the angle interval ``[lo, lo + width]`` overlaps and, where it passes ``PERIOD``,
-    ``0..w1`` (up to, not into, those already covered; ``w1 = -1`` without)."""
-    n_b = edges.shape[0] - 1
-    h = min(lo + width, lo + PERIOD)
-    k0 = min(max(np.searchsorted(edges, lo, side="right") - 1, 0), n_b - 1)
-    k1 = min(max(np.searchsorted(edges, min(h, PERIOD), side="right") - 1, 0), n_b - 1)
-    w1 = -1
-    if h > PERIOD:
-        w1 = min(min(max(np.searchsorted(edges, h - PERIOD, side="right") - 1, 0), n_b - 1), k0 - 1)
-    return k0, k1, w1
-
-
-@nb.njit(inline="always")
-def _entry(k, b, y, directions, c0, c1, span, hull, bucket, key, m, count):
-    """Entry ``m`` (keypoint ``k`` in bucket ``b``) if its key lies in the bucket's hull: the next ``m``."""
-    kb = b + (((y[k, 0] - c0) * directions[b, 0] + (y[k, 1] - c1) * directions[b, 1]) / span + 0.5)
-    if kb >= hull[b, 0] and kb <= hull[b, 1]:
-        if not count:
-            bucket[m], key[m] = b, kb
-        return m + 1
-    return m
+#: Cells of the lookup grid over ``[0, PERIOD]`` per pencil bucket (:func:`_grid`).
+GRID_PER_BUCKET = 4
 
 
 @nb.njit(cache=True, nogil=True)
-def _spread(k0, k1, lo, width, edges, y, directions, c0, c1, span, hull, first, bucket, key, count):
-    """Keypoints ``k0:k1``: with ``count``, the number of their (bucket, key) entries into ``first[k]``;
-    else those entries from position ``first[k]``. An entry is kept only inside its bucket's hull."""
+def _grid(edges):
+    """``grid[c]``: the number of ``edges`` at or below ``c PERIOD / G`` (``G = GRID_PER_BUCKET n_b``), so that
+    :func:`_ranges` searches a few edges instead of all of them."""
+    g = GRID_PER_BUCKET * (edges.shape[0] - 1)
+    return np.searchsorted(edges, np.arange(g + 1) * (PERIOD / g), side="right")
+
+
+@nb.njit(cache=True, nogil=True)
+def _ranges(k0, k1, lo, width, edges, grid, ranges):
+    """Keypoints ``k0:k1``: the buckets ``ranges[k, 0]..ranges[k, 1]`` that the angle interval
+    ``[lo, lo + width]`` overlaps and, where it passes ``PERIOD``, ``0..ranges[k, 2]`` (up to, not into,
+    those already covered; -1 without).
+
+    Each bucket is ``np.searchsorted(edges, x, side="right") - 1``, as a binary search between the grid
+    cells one either side of ``x``'s (so that rounding in the cell's number cannot miss), written out
+    here rather than in a helper taking the arrays (such a call cost more than the search)."""
+    n_b = edges.shape[0] - 1
+    g = grid.shape[0] - 1
+    scale = g / PERIOD
     for k in range(k0, k1):
-        b0, b1, w1 = _bucket_range(lo[k], width[k], edges)
+        h = min(lo[k] + width[k], lo[k] + PERIOD)
+        for j in range(3):
+            if j == 0:
+                x = lo[k]
+            elif j == 1:
+                x = min(h, PERIOD)
+            elif h > PERIOD:
+                x = h - PERIOD
+            else:
+                ranges[k, 2] = -1
+                break
+            f = x * scale
+            if f >= 0.0:
+                c = int(f) if f < g else g - 1
+                a, z = grid[max(c - 1, 0)], grid[min(c + 2, g)]
+            else:  # NaN
+                a, z = 0, edges.shape[0]
+            while a < z:
+                mid = (a + z) >> 1
+                if edges[mid] <= x:
+                    a = mid + 1
+                else:
+                    z = mid
+            ranges[k, j] = min(max(a - 1, 0), n_b - 1)
+        if h > PERIOD:
+            ranges[k, 2] = min(ranges[k, 2], ranges[k, 0] - 1)
+
+
+@nb.njit(cache=True, nogil=True)
+def _spread(k0, k1, ranges, y, directions, c0, c1, span, hull, first, bucket, key, count):
+    """Keypoints ``k0:k1``: with ``count``, the number of their (bucket, key) entries into ``first[k]``;
+    else those entries from position ``first[k]``. An entry (keypoint ``k`` in a bucket ``b`` of its
+    ``ranges[k]``) is kept only if its key lies in the bucket's hull.
+
+    (The entry is computed here, not in a helper taking the arrays: such a call cost about 30 ns per
+    entry, eight times the arithmetic.)"""
+    for k in range(k0, k1):
+        b0, b1, w1 = ranges[k, 0], ranges[k, 1], ranges[k, 2]
         m = 0 if count else first[k]
-        for b in range(b0, b1 + 1):
-            m = _entry(k, b, y, directions, c0, c1, span, hull, bucket, key, m, count)
-        for b in range(0, w1 + 1):
-            m = _entry(k, b, y, directions, c0, c1, span, hull, bucket, key, m, count)
+        x0, x1 = y[k, 0] - c0, y[k, 1] - c1
+        n0 = b1 - b0 + 1
+        for r in range(n0 + w1 + 1):  # buckets b0..b1, then 0..w1
+            b = b0 + r if r < n0 else r - n0
+            kb = b + ((x0 * directions[b, 0] + x1 * directions[b, 1]) / span + 0.5)
+            if kb >= hull[b, 0] and kb <= hull[b, 1]:
+                if not count:
+                    bucket[m], key[m] = b, kb
+                m += 1
         if count:
             first[k] = m
 
@@ -330,12 +374,14 @@ def spread_keys(lo, width, edges, y, directions, c0, c1, span, hull):
     ``(t_sorted, key_sorted, bstart)``, bucket ``b`` being ``bstart[b]:bstart[b + 1]``."""
     n = lo.shape[0]
     first = np.empty(n + 1, dtype=np.int64)
+    ranges = np.empty((n, 3), dtype=np.int64)
+    _ranges(0, n, lo, width, edges, _grid(edges), ranges)
     no_i, no_f = np.empty(0, np.int64), np.empty(0)
-    _spread(0, n, lo, width, edges, y, directions, c0, c1, span, hull, first, no_i, no_f, True)
+    _spread(0, n, ranges, y, directions, c0, c1, span, hull, first, no_i, no_f, True)
     total = _prefix(first[:n])
     first[n] = total
     bucket, key = np.empty(total, np.int64), np.empty(total)
-    _spread(0, n, lo, width, edges, y, directions, c0, c1, span, hull, first, bucket, key, False)
+    _spread(0, n, ranges, y, directions, c0, c1, span, hull, first, bucket, key, False)
     t_b, key_b, bstart = _by_bucket(first, bucket, key, edges.shape[0] - 1)
     t_sorted, key_sorted = np.empty(total, np.int64), np.empty(total)
     for b in range(edges.shape[0] - 1):
@@ -349,16 +395,18 @@ def spread_keys_parallel(lo, width, edges, y, directions, c0, c1, span, hull, bl
     n = lo.shape[0]
     nblk = blocks
     first = np.empty(n + 1, dtype=np.int64)
+    grid, ranges = _grid(edges), np.empty((n, 3), dtype=np.int64)
     no_i, no_f = np.empty(0, np.int64), np.empty(0)
     for c in prange(nblk):
         k0, k1 = _blocks(n, nblk, c)
-        _spread(k0, k1, lo, width, edges, y, directions, c0, c1, span, hull, first, no_i, no_f, True)
+        _ranges(k0, k1, lo, width, edges, grid, ranges)
+        _spread(k0, k1, ranges, y, directions, c0, c1, span, hull, first, no_i, no_f, True)
     total = _prefix(first[:n])
     first[n] = total
     bucket, key = np.empty(total, np.int64), np.empty(total)
     for c in prange(nblk):
         k0, k1 = _blocks(n, nblk, c)
-        _spread(k0, k1, lo, width, edges, y, directions, c0, c1, span, hull, first, bucket, key, False)
+        _spread(k0, k1, ranges, y, directions, c0, c1, span, hull, first, bucket, key, False)
     t_b, key_b, bstart = _by_bucket(first, bucket, key, edges.shape[0] - 1)
     t_sorted, key_sorted = np.empty(total, np.int64), np.empty(total)
     for b in prange(edges.shape[0] - 1):
@@ -369,10 +417,29 @@ def spread_keys_parallel(lo, width, edges, y, directions, c0, c1, span, hull, bl
 # -- per query row -----------------------------------------------------------------------------------
 @nb.njit(cache=True, nogil=True)
 def _slices(r0, r1, key_t, bstart, qb, klo, khi, start, stop):
+    """``start[r]``: the first key of bucket ``qb[r]`` at or above ``klo[r]`` (``np.searchsorted`` left);
+    ``stop[r]``: the first above ``khi[r]`` (right). Binary searches written out: ``np.searchsorted`` on
+    a slice cost twice as much."""
     for r in range(r0, r1):
         a, z = bstart[qb[r]], bstart[qb[r] + 1]
-        start[r] = a + np.searchsorted(key_t[a:z], klo[r], side="left")
-        stop[r] = a + np.searchsorted(key_t[a:z], khi[r], side="right")
+        x = klo[r]
+        lo, hi = a, z
+        while lo < hi:
+            mid = (lo + hi) >> 1
+            if key_t[mid] < x:
+                lo = mid + 1
+            else:
+                hi = mid
+        start[r] = lo
+        x = khi[r]
+        hi = z  # the keys above klo's position
+        while lo < hi:
+            mid = (lo + hi) >> 1
+            if key_t[mid] <= x:
+                lo = mid + 1
+            else:
+                hi = mid
+        stop[r] = lo
 
 
 @nb.njit(cache=True, nogil=True)

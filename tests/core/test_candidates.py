@@ -308,3 +308,50 @@ def test_pseudo_angles_keep_the_order_of_angles_mod_pi():
     assert np.all((p >= 0) & (p < PERIOD)) and np.all(np.diff(p) > 0)
     assert _pseudo_angle(0.0, 1.0) == 0.0 and _pseudo_angle(1.0, 0.0) == 1.0 and _pseudo_angle(0.0, -1.0) == 0.0
     assert _pseudo_angle(0.0, 0.0) == 0.0 and np.isnan(_pseudo_angle(np.nan, 1.0))
+
+
+def _reference_ranges(lo, width, edges):
+    """The buckets of each keypoint's angle interval, by ``np.searchsorted`` (the index's definition)."""
+    from episeg_cv.matching._index_kernels import PERIOD
+
+    n_b = len(edges) - 1
+    h = np.minimum(lo + width, lo + PERIOD)
+    bucket = lambda x: np.clip(np.searchsorted(edges, x, side="right") - 1, 0, n_b - 1)  # noqa: E731
+    k0, k1 = bucket(lo), bucket(np.minimum(h, PERIOD))
+    w1 = np.where(h > PERIOD, np.minimum(bucket(np.maximum(h - PERIOD, 0.0)), k0 - 1), -1)
+    return np.column_stack([k0, k1, w1])
+
+
+@pytest.mark.parametrize("n_b", [1, 2, 7, 156])
+def test_bucket_ranges_are_searchsorted(n_b):
+    """The grid-accelerated bucket search of the index gives np.searchsorted's buckets, edges and ties included."""
+    from episeg_cv.matching._index_kernels import PERIOD, _grid, _ranges
+
+    rng = np.random.default_rng(n_b)
+    inner = np.sort(rng.choice(np.concatenate([rng.uniform(0, PERIOD, n_b), [0.5, 0.5, 1.0]]), n_b - 1))
+    edges = np.concatenate([[0.0], inner, [PERIOD]])
+    grid_values = np.arange(4 * n_b + 1) * (PERIOD / (4 * n_b))  # values on the grid's cell bounds
+    lo = np.concatenate([rng.uniform(0, PERIOD, 3000), edges[:-1], grid_values[:-1], np.nextafter(edges[1:], 0)])
+    width = np.concatenate([rng.choice([0.0, 1e-3, 0.3, PERIOD], 3000, p=[0.1, 0.6, 0.2, 0.1]),
+                            rng.uniform(0, PERIOD, lo.size - 3000)])
+    got = np.empty((lo.size, 3), dtype=np.int64)
+    _ranges(0, lo.size, lo, width, edges, _grid(edges), got)
+    np.testing.assert_array_equal(got, _reference_ranges(lo, width, edges))
+
+
+def test_slice_bounds_are_searchsorted():
+    """Each query's slice: np.searchsorted of its key interval in its bucket's sorted keys."""
+    from episeg_cv.matching._index_kernels import slice_bounds
+
+    rng = np.random.default_rng(3)
+    sizes = rng.integers(0, 40, 30)
+    bstart = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+    key_t = np.concatenate([b + np.sort(rng.choice(np.linspace(0, 1, 25), s)) for b, s in enumerate(sizes)])
+    qb = rng.integers(0, len(sizes), 500).astype(np.int64)
+    klo = qb + rng.choice(np.linspace(-0.1, 1.1, 37), 500)
+    khi = klo + rng.choice([0.0, 0.05, 0.5, 2.0], 500)
+    start, stop = slice_bounds(key_t, bstart, qb, klo, khi)
+    for r in range(500):
+        a, z = bstart[qb[r]], bstart[qb[r] + 1]
+        assert start[r] == a + np.searchsorted(key_t[a:z], klo[r], side="left")
+        assert stop[r] == a + np.searchsorted(key_t[a:z], khi[r], side="right")
