@@ -23,7 +23,8 @@ class PairJob:
     ``search`` (its constraint and tol) and ``rule`` are as in
     :func:`~episeg_cv.match_descriptors`; each view's ``depth_range`` bounds its own segments.
     ``loose``: for the track consensus, the candidates with a ratio below it come back with
-    their ratio values (None: the matches of ``rule``).
+    their ratio values (None: the matches of ``rule``). ``samples``: queries whose search lengths
+    are measured (0: none; a statistic, not used to match).
     """
 
     index: int
@@ -97,9 +98,11 @@ def match_pair(job: PairJob) -> PairResult:
         pairs, ratios = np.column_stack([i[keep], j[keep]]).astype(np.intp), r[keep]
     keep = keep_mask(pairs[:, ::-1], q2, q1, g.inverse(), job.search.replace(depth_range=job.view2.depth_range))
     sample = q1[:: max(1, len(q1) // max(job.samples, 1))][: job.samples]
-    full = g.segments(sample)
-    ranged = g.segments(sample, job.view1.depth_range)
-    lengths = tuple(float(np.sum(x)) for x in (full.line_length, full.length, ranged.length))
+    lengths = (0.0, 0.0, 0.0)
+    if len(sample):
+        full = g.segments(sample)
+        ranged = g.segments(sample, job.view1.depth_range)
+        lengths = tuple(float(np.sum(x)) for x in (full.line_length, full.length, ranged.length))
     if idx1 is not None and len(pairs):
         pairs[:, 0] = idx1[pairs[:, 0]]
     if idx2 is not None and len(pairs):

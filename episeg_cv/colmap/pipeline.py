@@ -30,7 +30,7 @@ from .._validation import as_positive_int
 from ..features import PRESETS, FeatureConfig
 from ..interrupts import terminate_as_interrupt
 from ..matching.config import AcceptRule, AutoTol, SearchConfig, resolve
-from .band import collection_band
+from .band import collection_band, sample_pairs
 from .consensus import TrackConsensus, verify_tracks
 from .database import (check_database_path, check_resumable, create_database, database_lock, pair_unchanged,
                        write_pair)
@@ -55,6 +55,10 @@ EXHAUSTIVE_WARN = 300
 #: ``tol=2`` on the real dinoSparseRing and two synthetic rooms, with COLMAP's features and with ours, at
 #: a higher accurate fraction on the rooms (``benchmarks/colmap.py``).
 COLLECTION_TOL = "auto"
+
+#: Pairs, evenly spread over the pair list, whose search lengths are measured (:attr:`MatchReport.search_length`):
+#: two more segment computations per pair cost 10 % of matching a pair of 250 keypoints (dinoSparseRing).
+LENGTH_PAIRS = 32
 
 #: The values of ``verify``: the track consensus of the whole collection, or each pair on its own.
 VERIFY = ("tracks", "pairs")
@@ -97,8 +101,8 @@ class MatchReport:
         consensus's reprojection tolerance); empty otherwise.
     search_length : dict
         Mean search length per sampled query in image 2, pixels (up to 256
-        queries per pair): ``"line"`` (the whole epipolar line in the image),
-        ``"segment"`` (the segment with depths in ``(0, inf)``) and
+        queries in each of up to :data:`LENGTH_PAIRS` pairs, evenly spread): ``"line"``
+        (the whole epipolar line in the image), ``"segment"`` (the segment with depths in ``(0, inf)``) and
         ``"segment_in_depth_range"``. Empty when no pair was matched.
     """
 
@@ -411,8 +415,9 @@ class _Run:
 
     def _jobs(self, pair_list, loose):
         views, store = self.views, self.store
-        return [PairJob(k, views[i], views[j], store, self.search, self.rule, loose=loose)
-                for k, (i, j) in enumerate(pair_list)]
+        measured = set(sample_pairs(range(len(pair_list)), LENGTH_PAIRS))
+        return [PairJob(k, views[i], views[j], store, self.search, self.rule, samples=256 if k in measured else 0,
+                        loose=loose) for k, (i, j) in enumerate(pair_list)]
 
     def _results(self, runner, jobs):
         # a few consecutive pairs per task: less scheduling and pickling, and they share images

@@ -28,7 +28,7 @@ from ..uncertainty import EpipolarBands, epipolar_bands
 from . import _band_kernels
 from .candidates import CandidateIndex
 from .config import AcceptRule, SearchConfig
-from .guided import MatchInputs, Neighbors
+from .guided import MatchInputs, Neighbors, padding_references
 
 __all__ = ["candidate_pairs", "nearest", "match", "knn", "radius", "bands_for"]
 
@@ -120,7 +120,7 @@ def nearest(inputs: MatchInputs, geometry, bands: EpipolarBands, search: SearchC
         mutual = col[j] == i
     n_pad = min(rule.pad, len(p2))
     if n_pad and len(i):
-        pad_j = np.sort(np.random.default_rng(rng).choice(len(p2), n_pad, replace=False))
+        pad_j = padding_references(rng, len(p2), n_pad)
         s2 = np.minimum(s2, dist.nearest_excluding(i, pad_j, j))
     ratio = _ratio(dist.to_distance(s1.astype(np.float64)), dist.to_distance(s2.astype(np.float64)))
     return i, j, ratio, mutual, counts

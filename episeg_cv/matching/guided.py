@@ -19,6 +19,7 @@ directly, after checking its own arguments under OpenCV's names.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -192,6 +193,20 @@ def radius(inputs: MatchInputs, geometry: TwoViewGeometry, search: SearchConfig,
     return np.column_stack([i[o], j[o]]).astype(np.intp), d[o]
 
 
+def padding_references(rng, n2: int, n_pad: int) -> np.ndarray:
+    """The ``n_pad`` padding references among ``n2`` keypoints, sorted: drawn by ``np.random.default_rng(rng)``,
+    the same for the same seed (an int seed's draw is kept: a collection draws the same few many times, and
+    the draw cost as much as matching a small pair's queries)."""
+    if isinstance(rng, (int, np.integer)) and not isinstance(rng, bool):
+        return _seeded_references(int(rng), n2, n_pad).copy()
+    return np.sort(np.random.default_rng(rng).choice(n2, n_pad, replace=False))
+
+
+@functools.lru_cache(maxsize=256)
+def _seeded_references(seed: int, n2: int, n_pad: int) -> np.ndarray:
+    return np.sort(np.random.default_rng(seed).choice(n2, n_pad, replace=False))
+
+
 def _ratio(d1: np.ndarray, d2: np.ndarray) -> np.ndarray:
     """``d1 / d2``; 0 where there is no second (``d2 = inf``), inf where ``d2 = 0 < d1``, 1 for ``0 / 0``."""
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -227,7 +242,7 @@ def nearest(inputs: MatchInputs, geometry: TwoViewGeometry, search: SearchConfig
         mutual = res.column_best[j] == i
     n_pad = min(rule.pad, len(p2))
     if n_pad and len(i):
-        pad_j = np.sort(np.random.default_rng(rng).choice(len(p2), n_pad, replace=False))
+        pad_j = padding_references(rng, len(p2), n_pad)
         r = np.arange(len(i)) if not prefilter else \
             np.flatnonzero(_keep(_ratio(dist.to_distance(s1.astype(np.float64)),
                                         dist.to_distance(s2.astype(np.float64))), mutual,

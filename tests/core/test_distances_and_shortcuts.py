@@ -279,3 +279,22 @@ def test_knn_ties_go_to_the_smaller_index():
     res = knn_descriptors(d1, d2, p1, p2, g, k=3)
     assert res.indices.tolist() == [[0, 1, 2], [0, 1, 2]]
     assert res.column_best.tolist() == [0, 0, 0]
+
+
+def test_padding_references_are_the_seeded_draw_and_not_shared():
+    """The padding references of an int seed are kept between calls: the same draw as a fresh generator, as
+    a new array each time (a caller changing it cannot change the next call's)."""
+    from episeg_cv.matching.guided import padding_references
+
+    want = np.sort(np.random.default_rng(7).choice(500, 128, replace=False))
+    a = padding_references(7, 500, 128)
+    np.testing.assert_array_equal(a, want)
+    a[:] = -1
+    np.testing.assert_array_equal(padding_references(7, 500, 128), want)
+    np.testing.assert_array_equal(padding_references(np.int64(7), 500, 128), want)
+    assert not np.array_equal(padding_references(8, 500, 128), want)
+    gen = padding_references(np.random.default_rng(7), 500, 128)  # a Generator: drawn from it, not kept
+    np.testing.assert_array_equal(gen, want)
+    assert padding_references(0, 5, 5).tolist() == [0, 1, 2, 3, 4]
+    with pytest.raises(ValueError):
+        padding_references(-1, 10, 3)
