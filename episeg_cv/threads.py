@@ -31,7 +31,7 @@ import numpy as np
 from .interrupts import interrupt_in
 
 __all__ = ["set_num_threads", "get_num_threads", "limit_this_thread", "use_parallel", "call_parallel", "run",
-           "blas_limit", "Scratch", "blocks", "map_blocks", "MIN_PARALLEL_ITEMS", "BLOCKS_PER_THREAD"]
+           "blas_limit", "Scratch", "blocks", "MIN_PARALLEL_ITEMS", "BLOCKS_PER_THREAD"]
 
 #: Below this many items (rows, points, keypoints) a kernel runs its serial variant: forking threads
 #: costs more than it saves (a few microseconds on an idle machine, milliseconds on an oversubscribed one).
@@ -211,28 +211,6 @@ def blas_limit(n: int | None = None):
     if not _blas.lib_controllers or all(c.num_threads <= n for c in _blas.lib_controllers):
         return _NoLimit()
     return _blas.limit(limits=n)
-
-
-_pool = None  # (pool, its number of workers)
-_pool_lock = threading.Lock()
-
-
-def map_blocks(fn, blocks_: list) -> list:
-    """``[fn(b) for b in blocks_]``, on up to :func:`get_num_threads` Python threads (a pool kept for the
-    process). For work that releases the GIL (numpy, single-threaded BLAS); results in order."""
-    n = min(get_num_threads(), len(blocks_))
-    if n <= 1:
-        return [fn(b) for b in blocks_]
-    global _pool
-    with _pool_lock:
-        if _pool is None or _pool[1] < n:
-            import concurrent.futures as cf
-
-            if _pool is not None:
-                _pool[0].shutdown(wait=False)
-            _pool = (cf.ThreadPoolExecutor(n, thread_name_prefix="episeg-blocks"), n)
-        pool = _pool[0]
-    return list(pool.map(fn, blocks_))
 
 
 class Scratch(threading.local):

@@ -419,6 +419,18 @@ def padding_l2(A, qi, BT2, bb, tj, exclude, r0, r1, rows, prod, out, round_to):
             out[s + i] = v if v > 0.0 else np.float32(0.0)
 
 
+@nb.njit(cache=True, nogil=True, parallel=True)
+def padding_l2_parallel(A, qi, BT2, bb, tj, exclude, cuts, rows, prod, out, round_to):
+    """:func:`padding_l2` on numba's threads: block ``h`` does the rows ``cuts[h]:cuts[h + 1]`` (whole chunks,
+    so a row's product does not depend on the split) with its own ``rows[h]`` and ``prod[h]``
+    (``(n_blocks, chunk, D)`` and ``(n_blocks, chunk, C)``). BLAS must be limited to one thread.
+
+    On the threads that the scan and the index just used: on Python threads instead, the padding did not
+    run faster on two cores than on one (numba's idle threads spin for a while after a parallel loop)."""
+    for h in prange(cuts.shape[0] - 1):
+        padding_l2(A, qi, BT2, bb, tj, exclude, cuts[h], cuts[h + 1], rows[h], prod[h], out, round_to)
+
+
 @nb.njit(cache=True, nogil=True)
 def gather_rows(src, rows, out):
     """``out[m] = src[rows[m]]`` (rows of any width)."""

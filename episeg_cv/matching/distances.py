@@ -63,8 +63,9 @@ class Distances:
         Every query against the same keypoints is a dense product: for L2 it is done with BLAS
         (:func:`._kernels.padding_l2`), in chunks of :data:`PAD_CHUNK` rows (the last one rounded up to
         :data:`PAD_ROUND`) whose product stays in
-        cache, each fused with its minimum. The chunks are cut at fixed row numbers and run on Python
-        threads with BLAS on one thread each, so a row's arithmetic does not depend on the thread count.
+        cache, each fused with its minimum. The chunks are cut at fixed row numbers and run on the
+        compiled kernels' threads with BLAS on one thread each, so a row's arithmetic does not depend on
+        the thread count.
         """
         qi, tj, exclude = (np.asarray(v, dtype=np.int64) for v in (qi, tj, exclude))
         if self.norm not in ("l2", "l2sqr"):
@@ -79,17 +80,20 @@ class Distances:
         bb = np.einsum("ij,ij->i", b, b)
         chunks = -(-len(qi) // PAD_CHUNK)
         n = min(threads.get_num_threads(), chunks)
-        cuts = [PAD_CHUNK * (chunks * h // n) for h in range(n)] + [len(qi)]  # whole chunks per thread
-
-        def block(h):
-            rows = _scratch.get("rows", (PAD_CHUNK, self.a.shape[1]), np.float32)
-            prod = _scratch.get("prod", (PAD_CHUNK, len(tj)), np.float32)
-            _kernels.padding_l2(self.a, qi, bt2, bb, tj, exclude, cuts[h], cuts[h + 1], rows, prod, out, PAD_ROUND)
-
+        D = self.a.shape[1]
         # BLAS on one thread: a multi-threaded BLAS on these small products, next to the compiled kernels'
         # idle threads, was slower with two threads than with one
         with threads.blas_limit(1):
-            threads.map_blocks(block, list(range(n)))
+            if n == 1:
+                rows = _scratch.get("rows", (PAD_CHUNK, D), np.float32)
+                prod = _scratch.get("prod", (PAD_CHUNK, len(tj)), np.float32)
+                _kernels.padding_l2(self.a, qi, bt2, bb, tj, exclude, 0, len(qi), rows, prod, out, PAD_ROUND)
+            else:  # whole chunks per block
+                cuts = np.array([PAD_CHUNK * (chunks * h // n) for h in range(n)] + [len(qi)], dtype=np.int64)
+                rows = _scratch.get("rows", (n, PAD_CHUNK, D), np.float32)
+                prod = _scratch.get("prod", (n, PAD_CHUNK, len(tj)), np.float32)
+                threads.call_parallel(_kernels.padding_l2_parallel, self.a, qi, bt2, bb, tj, exclude, cuts, rows,
+                                      prod, out, PAD_ROUND)
         return out
 
     def to_distance(self, scores: np.ndarray) -> np.ndarray:
