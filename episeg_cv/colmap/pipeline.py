@@ -416,7 +416,7 @@ class _Run:
     def _jobs(self, pair_list, loose):
         views, store = self.views, self.store
         measured = set(sample_pairs(range(len(pair_list)), LENGTH_PAIRS))
-        return [PairJob(k, views[i], views[j], store, self.search, self.rule, samples=256 if k in measured else 0,
+        return [PairJob(k, views[i], views[j], store, self.search, self.rule, samples=PairJob.samples if k in measured else 0,
                         loose=loose) for k, (i, j) in enumerate(pair_list)]
 
     def _results(self, runner, jobs):
