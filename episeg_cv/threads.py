@@ -205,6 +205,7 @@ def blas_limit(n: int | None = None):
     if _blas is None:
         with _blas_lock:
             if _blas is None:
+                import scipy.linalg.cython_blas  # noqa: F401 (numba's np.dot calls this BLAS: load it to see it)
                 from threadpoolctl import ThreadpoolController
                 _blas = ThreadpoolController().select(user_api="blas")
     n = get_num_threads() if n is None else n

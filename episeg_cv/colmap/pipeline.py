@@ -6,7 +6,8 @@ poses drive the matching: :func:`match_model` reads a COLMAP model (or a
 poses JSON, or a Middlebury ``*_par.txt``), computes features once per image
 (:class:`.store.FeatureStore`) or reads COLMAP's from the database
 (:mod:`.dbfeatures`), matches every pair on its segments
-(:func:`.job.match_pair`, run by a :class:`.runner.Runner`), verifies the
+(:func:`.job.match_pairs`: the small pairs of a task in one compiled call, on every core; run by a
+:class:`.runner.Runner`), verifies the
 candidates of all pairs together with the known poses (:mod:`.consensus`),
 and writes a COLMAP database (:mod:`.database`) that ``colmap
 point_triangulator`` or :func:`pycolmap.triangulate_points` uses unchanged
@@ -35,7 +36,7 @@ from .consensus import TrackConsensus, verify_tracks
 from .database import (check_database_path, check_resumable, create_database, database_lock, pair_unchanged,
                        write_pair)
 from .dbfeatures import SOURCE, DatabaseFeatureStore, check_feature_database, database_views, prepare_feature_database
-from .job import PairJob, match_pair
+from .job import PairJob, match_pairs
 from .model import auto_depth_ranges, load_model, reconstruction_from_views
 from .pairs import exhaustive_pairs, index_pairs, neighbor_pairs, read_pairs
 from .poses import is_par_file, load_par, load_poses
@@ -522,7 +523,7 @@ def _consensus_config(verify) -> TrackConsensus | None:
 
 
 def _match_chunk(jobs):
-    return [match_pair(job) for job in jobs]
+    return match_pairs(jobs)
 
 
 def _ensure_features(item):

@@ -32,12 +32,14 @@ import cv2
 
 from ..threads import limit_this_thread
 
-__all__ = ["Runner", "CONNECT_TIMEOUT", "warm_up", "single_thread", "watch_parent", "undo_malloc_trim"]
+__all__ = ["Runner", "CONNECT_TIMEOUT", "warm_up", "warm_batch", "single_thread", "watch_parent", "undo_malloc_trim"]
 
 #: Seconds to wait for a Dask scheduler before giving up.
 CONNECT_TIMEOUT = 10.0
 #: Dask tasks per worker (:meth:`Runner.chunk`): enough to even out uneven tasks, few enough to cost little.
 TASKS_PER_WORKER = 4
+#: Pairs per task in this process, and per task of a pool of threads.
+PROCESS_CHUNK, THREAD_CHUNK = 64, 8
 #: Bounds on the pairs of one Dask task.
 DASK_CHUNK_MIN, DASK_CHUNK_MAX = 8, 64
 
@@ -106,6 +108,27 @@ def warm_up() -> None:
     pairs, _ = guided.match(inputs, g, SearchConfig(), AcceptRule())
     guided.nearest(inputs, g, SearchConfig(), AcceptRule(), prefilter=True)
     keep_mask(pairs, p, p, g, SearchConfig())
+    warm_batch(g, p, inputs.distances.a)
+
+
+def warm_batch(g, p, a) -> None:
+    """Load the many-small-pairs kernels (:func:`~episeg_cv.matching._small_kernels.pairs` and its parallel
+    twin) with one pair of the points ``p`` and scoring rows ``a`` (float32) to themselves."""
+    import numpy as np
+
+    from ..geometry import CHEIRALITY_EPS, _rect
+    from ..matching import _small_kernels as _sk
+
+    gi = g.inverse()
+    n = len(p)
+    args = (np.ascontiguousarray(np.concatenate([p, p])), np.ascontiguousarray(np.concatenate([a, a])),
+            np.array([0, n, 2 * n]), np.array([[0, 1]]), g.infinity_homography[None], g.epipole_homogeneous[None],
+            gi.infinity_homography[None], gi.epipole_homogeneous[None], np.array([[0.0, np.inf], [0.0, np.inf]]),
+            np.array([[_rect(g.image_size2, 2.0), _rect(g.image_size1, 2.0)]]), CHEIRALITY_EPS, 2.0,
+            np.arange(n), np.array([0, n]), 0, True, 1.0, True, 64, 64, np.array([0, n]), np.empty(n, np.int64),
+            np.empty(n, np.int64), np.empty(n), np.empty(n, np.bool_), np.zeros(1, np.int64))
+    _sk.pairs(*args)
+    _sk.pairs_parallel(*args, 1)
 
 
 def watch_parent(pid: int, interval: float = 1.0) -> None:
@@ -196,7 +219,8 @@ class Runner:
     def chunk(self, n_items: int) -> int:
         """Items per task for ``n_items`` items.
 
-        In this process: 1. Threads: 2 (a task costs microseconds). Dask: about
+        In this process: :data:`PROCESS_CHUNK` (a task's small pairs are one compiled call on every
+        core, :func:`~.job.match_pairs`). Threads: :data:`THREAD_CHUNK`. Dask: about
         :data:`TASKS_PER_WORKER` tasks per worker, within ``[DASK_CHUNK_MIN, DASK_CHUNK_MAX]``:
         each task costs the scheduler and the driver's event loop a few milliseconds of Python, which
         took CPU from the workers (on 276 pairs and 2 workers, 8 pairs a task ran at 0.9x of 24-70).
@@ -204,7 +228,7 @@ class Runner:
         if self._client is not None:
             per = -(-n_items // (TASKS_PER_WORKER * self._workers))
             return int(min(max(per, DASK_CHUNK_MIN), DASK_CHUNK_MAX))
-        return 2 if self._pool is not None else 1
+        return THREAD_CHUNK if self._pool is not None else PROCESS_CHUNK
 
     def imap(self, fn, items):
         items = iter(items)

@@ -380,6 +380,19 @@ def nearest_excluding_parallel(A, B, qi, tj, exclude, norm, blocks):
 
 
 @nb.njit(cache=True, nogil=True)
+def squared_norms(B, rows):
+    """``(len(rows),)`` float32 squared norms of the rows ``B[rows]``, summed in order (the padding's
+    ``|b|^2``, the same bits wherever it is computed)."""
+    out = np.empty(rows.shape[0], dtype=np.float32)
+    for c in range(rows.shape[0]):
+        s = np.float32(0.0)
+        for f in range(B.shape[1]):
+            s += B[rows[c], f] * B[rows[c], f]
+        out[c] = s
+    return out
+
+
+@nb.njit(cache=True, nogil=True)
 def padding_l2(A, qi, BT2, bb, tj, exclude, r0, r1, rows, prod, out, round_to):
     """``out[r]``, for ``r`` in ``r0:r1``: the smallest squared L2 distance from ``A[qi[r]]`` to the
     keypoints ``tj`` but ``exclude[r]`` (inf when none is left), as ``|a|^2 + min_c (|b_c|^2 - 2 a.b_c)``

@@ -77,7 +77,7 @@ class Distances:
             return out
         b = np.ascontiguousarray(self.b[tj])
         bt2 = np.ascontiguousarray(b.T) * np.float32(-2.0)  # exact: a power of two
-        bb = np.einsum("ij,ij->i", b, b)
+        bb = _kernels.squared_norms(self.b, tj)
         chunks = -(-len(qi) // PAD_CHUNK)
         n = min(threads.get_num_threads(), chunks)
         D = self.a.shape[1]

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from .._validation import as_index_pairs, as_points
-from ..geometry import Rejection, TwoViewGeometry, as_geometry, point_segment_distance
+from ..geometry import Rejection, TwoViewGeometry, as_geometry
+from . import _small_kernels as _sk
 from .config import SearchConfig, resolve
 
 __all__ = ["filter_pairs", "explain_pairs", "keep_mask", "explain"]
@@ -30,22 +31,14 @@ def keep_mask(pairs: np.ndarray, points1: np.ndarray, points2: np.ndarray, geome
         i = np.arange(len(pairs))
     else:
         seg = geometry.segments(points1, search.depth_range, margin=tol)
-    # 1-D gathers (one column at a time) are several times faster than gathering rows of (N, 2) arrays
-    y0, y1 = np.ascontiguousarray(points2[:, 0])[j], np.ascontiguousarray(points2[:, 1])[j]
-    l0, l1, l2 = (np.ascontiguousarray(seg.line[:, c])[i] for c in range(3))
-    with np.errstate(invalid="ignore"):
-        line_distance = np.abs(l0 * y0 + l1 * y1 + l2)
     if search.constraint == "line":
-        return line_distance <= tol  # NaN line: False
-    # A segment lies on its line, so only pairs near the line need the distance to the segment; the
-    # margin covers rounding, and a NaN line (undefined: the query maps to the epipole) is kept.
-    near = np.flatnonzero(~(line_distance > tol * (1 + 1e-6) + 1e-6) & seg.valid[i])
-    keep = np.zeros(len(pairs), dtype=bool)
-    if near.size:
-        ii = i[near]
-        d = point_segment_distance(points2[j[near]], np.nan_to_num(seg.start[ii]), np.nan_to_num(seg.end[ii]))
-        keep[near] = d <= tol
-    return keep
+        # 1-D gathers (one column at a time) are several times faster than gathering rows of (N, 2) arrays
+        y0, y1 = np.ascontiguousarray(points2[:, 0])[j], np.ascontiguousarray(points2[:, 1])[j]
+        l0, l1, l2 = (np.ascontiguousarray(seg.line[:, c])[i] for c in range(3))
+        with np.errstate(invalid="ignore"):
+            return np.abs(l0 * y0 + l1 * y1 + l2) <= tol  # NaN line: False
+    return _sk.segment_keep(seg.line, seg.start, seg.end, seg.valid, np.ascontiguousarray(i, dtype=np.int64),
+                            np.ascontiguousarray(points2), np.ascontiguousarray(j, dtype=np.int64), float(tol))
 
 
 def explain(pairs: np.ndarray, points1: np.ndarray, points2: np.ndarray, geometry: TwoViewGeometry,

@@ -26,6 +26,7 @@ import numpy as np
 
 from .._validation import as_descriptor_pair, as_nonnegative, as_norm, as_points_of, as_positive_int
 from ..geometry import TwoViewGeometry, as_geometry
+from . import small
 from .candidates import CandidateIndex
 from .config import AcceptRule, SearchConfig, resolve
 from .distances import Distances
@@ -228,6 +229,10 @@ def nearest(inputs: MatchInputs, geometry: TwoViewGeometry, search: SearchConfig
     """
     dist = inputs.distances
     p1, p2 = inputs.points1, inputs.points2
+    n_pad = min(rule.pad, len(p2))
+    if index is None and small.fits(len(p1), len(p2), search, rule, geometry):  # one compiled call, same results
+        pad_j = padding_references(rng, len(p2), n_pad) if n_pad and len(p1) else np.zeros(0, dtype=np.int64)
+        return small.nearest(inputs, geometry, search, rule, pad_j, prefilter)
     index = _index(inputs, geometry, search, bucket_size, index)
     res = _scan(index, dist, 2)
     i = np.flatnonzero(res.indices[:, 0] >= 0)
@@ -240,7 +245,6 @@ def nearest(inputs: MatchInputs, geometry: TwoViewGeometry, search: SearchConfig
         mutual = rev.indices[j, 0] == i
     else:
         mutual = res.column_best[j] == i
-    n_pad = min(rule.pad, len(p2))
     if n_pad and len(i):
         pad_j = padding_references(rng, len(p2), n_pad)
         r = np.arange(len(i)) if not prefilter else \

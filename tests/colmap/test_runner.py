@@ -7,14 +7,15 @@ import sys
 import pytest
 
 from episeg_cv.colmap import runner as runner_module
-from episeg_cv.colmap.runner import DASK_CHUNK_MAX, DASK_CHUNK_MIN, TASKS_PER_WORKER, Runner
+from episeg_cv.colmap.runner import (DASK_CHUNK_MAX, DASK_CHUNK_MIN, PROCESS_CHUNK, TASKS_PER_WORKER, THREAD_CHUNK,
+                                     Runner)
 
 
 def test_task_sizes_in_this_process_and_threads():
-    assert Runner(1).chunk(276) == 1
+    assert Runner(1).chunk(276) == PROCESS_CHUNK > THREAD_CHUNK > 1  # in this process a task is one parallel call
     pool = Runner(2)
     try:
-        assert pool.chunk(276) == 2 and pool.chunk(1) == 2
+        assert pool.chunk(276) == THREAD_CHUNK and pool.chunk(1) == THREAD_CHUNK
     finally:
         pool.close()
 

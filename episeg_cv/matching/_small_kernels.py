@@ -1,0 +1,267 @@
+"""Compiled kernels of :mod:`.small`: a small pair's nearest candidates in one call, and the reverse test.
+
+:func:`nearest` is :func:`episeg_cv.matching.guided.nearest` for a calibrated geometry and the
+segment constraint, from the keypoints to the ratios, without returning to Python: the segments
+(:func:`episeg_cv._geometry_kernels._segments`), the per-query frames
+(:func:`._index_kernels._frames`), the candidate slices, the scan (:func:`._kernels._scan_rows`),
+the padding (:func:`._kernels.padding_l2` or the other norms' scores) and the ratios. Only the
+slices differ from :class:`~.candidates.CandidateIndex`: the keypoints of image 2 are sorted along
+three axes (``x``, ``y``, and the normal of the segments' mean direction, across nearly parallel
+lines), and each query scans those inside its segment's bounding box grown by ``tol``, along the
+axis where the box holds fewest. A keypoint within ``tol`` of the segment is in
+that box, and the exact test of :mod:`._kernels` decides, so the candidates are the index's; the
+scan's orders are total, so the results do not depend on the order of the rows.
+
+:func:`nearest` runs on one thread and holds no GIL (``nogil``); :func:`pairs` matches many pairs
+both ways (the collection's jobs, :func:`episeg_cv.colmap.job.match_pairs`), and its parallel twin
+runs a pair per thread.
+"""
+
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+from numba import prange
+
+from .. import _geometry_kernels as _gk
+from . import _index_kernels as _ik
+from . import _kernels
+
+__all__ = ["nearest", "segment_keep", "pairs", "pairs_parallel"]
+
+
+@nb.njit(cache=True, nogil=True)
+def _ratio(d1, d2):
+    """``d1 / d2`` as :func:`episeg_cv.matching.guided._ratio`: 0 without a second, inf for ``d2 = 0 < d1``,
+    1 for ``0 / 0``."""
+    if not np.isfinite(d2):
+        return 0.0
+    if d2 > 0:
+        return d1 / d2
+    return np.inf if d1 > 0 else 1.0
+
+
+@nb.njit(cache=True, nogil=True)
+def _distance(s, root):
+    """A score as a distance, float64 (the square root of float32 squared L2 with ``root``)."""
+    return np.sqrt(np.float64(s)) if root else np.float64(s)
+
+
+@nb.njit(cache=True, nogil=True)
+def _slices(lo, hi, keys):
+    """``[start, stop)`` of the sorted ``keys`` within ``[lo, hi]``."""
+    return np.searchsorted(keys, lo, side="left"), np.searchsorted(keys, hi, side="right")
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def nearest(x1, x2, A, B, norm, root, H, b, zmin, zmax, rect, eps, tol, pad_j, ratio, mutual_rule, prefilter,
+            chunk, round_to):
+    """Every query's nearest candidate on its segment: ``(i, j, ratio, mutual, counts)``, as
+    :func:`~episeg_cv.matching.guided.nearest` returns them.
+
+    ``x1 (N1, 2)`` / ``x2 (N2, 2)`` float64 pixels; ``A`` / ``B`` the scoring arrays of
+    :class:`~.distances.Distances` and ``norm`` its kernel code, ``root``: scores are squared L2
+    distances reported as L2 (``"l2"``). ``H``, ``b``: the geometry's infinite homography and
+    homogeneous epipole; ``zmin`` / ``zmax`` ``(1,)`` or ``(N1,)``; ``rect`` image 2 grown by
+    ``tol``; ``eps`` the cheirality tolerance. ``pad_j``: the sorted padding references (empty:
+    none). ``ratio``, ``mutual_rule``: the rule, for ``prefilter`` (pad only the pairs it keeps
+    without padding). ``chunk`` / ``round_to``: the padding's BLAS blocks
+    (:data:`~.distances.PAD_CHUNK`, :data:`~.distances.PAD_ROUND`).
+    """
+    n1, n2 = x1.shape[0], x2.shape[0]
+    start, end, line = np.empty((n1, 2)), np.empty((n1, 2)), np.empty((n1, 3))
+    p_inf, a, valid = np.empty((n1, 2)), np.empty((n1, 3)), np.empty(n1, dtype=np.bool_)
+    _gk._segments(0, n1, x1, H, b, zmin, zmax, rect, eps, start, end, valid, line, p_inf, a)
+    for q in range(n1):
+        for c in range(3):
+            if not np.isfinite(line[q, c]):
+                line[q, c] = 0.0
+    geo = np.empty((n1, 7))
+    _ik._frames(0, n1, start, end, line, False, geo)
+    tol2 = tol * tol * (1 + 1e-9) + 1e-12
+    # the slices: keypoints sorted along three axes (x, y, and across the segments' mean direction); each
+    # query scans those inside its segment's box along the axis where the box holds fewest
+    u0, u1, seen = 0.0, 0.0, False
+    for q in range(n1):
+        if valid[q]:
+            s = 1.0 if not seen or geo[q, 3] * u0 + geo[q, 4] * u1 >= 0 else -1.0
+            u0, u1, seen = u0 + s * geo[q, 3], u1 + s * geo[q, 4], True
+    nu = np.hypot(u0, u1)
+    a0, a1 = (-u1 / nu, u0 / nu) if nu > 0 else (1.0, 0.0)  # the normal of the mean direction
+    axes = np.array([[1.0, 0.0], [0.0, 1.0], [a0, a1]])
+    keys, order, ys = np.empty((3, n2)), np.empty((3, n2), dtype=np.int64), np.empty((3, n2, 2))
+    for ax in range(3):
+        v = x2[:, 0] * axes[ax, 0] + x2[:, 1] * axes[ax, 1]
+        order[ax] = np.argsort(v)
+        for p in range(n2):
+            t = order[ax, p]
+            keys[ax, p] = v[t]
+            ys[ax, p, 0], ys[ax, p, 1] = x2[t, 0], x2[t, 1]
+    rows = np.empty((3, n1), dtype=np.int64)
+    lo, hi = np.empty((3, n1), dtype=np.int64), np.empty((3, n1), dtype=np.int64)
+    n_rows = np.zeros(3, dtype=np.int64)
+    longest = 0
+    for q in range(n1):
+        if not valid[q]:
+            continue
+        P0, P1, Q0, Q1 = start[q, 0], start[q, 1], end[q, 0], end[q, 1]
+        g = tol * (1 + 1e-6) + 1e-6 * (1.0 + max(abs(P0), abs(P1), abs(Q0), abs(Q1)))  # covers the test's rounding
+        best, s0, s1 = -1, 0, 0
+        for ax in range(3):
+            kp, kq = P0 * axes[ax, 0] + P1 * axes[ax, 1], Q0 * axes[ax, 0] + Q1 * axes[ax, 1]
+            c0, c1 = _slices(min(kp, kq) - g, max(kp, kq) + g, keys[ax])
+            if best < 0 or c1 - c0 < s1 - s0:
+                best, s0, s1 = ax, c0, c1
+        if s1 > s0:
+            r = n_rows[best]
+            rows[best, r], lo[best, r], hi[best, r] = q, s0, s1
+            n_rows[best] = r + 1
+            longest = max(longest, s1 - s0)
+    idx = np.full((n1, 2), -1, dtype=np.intp)
+    sc = np.full((n1, 2), np.inf, dtype=np.float32)
+    counts = np.zeros(n1, dtype=np.intp)
+    col_i = np.full(n2, -1, dtype=np.intp)
+    col_s = np.full(n2, np.inf, dtype=np.float32)
+    buf_p, buf_s = np.empty(longest, np.int64), np.empty(longest, np.float32)
+    for ax in range(3):
+        m = n_rows[ax]
+        _kernels._scan_rows(0, m, rows[ax, :m], lo[ax, :m], hi[ax, :m], order[ax], geo, ys[ax], False, tol, tol2,
+                            A, B, norm, idx, sc, counts, col_s, col_i, buf_p, buf_s)
+    # the nearest candidate of each query, its mutual flag and its ratio; the padding where it can matter
+    n = 0
+    for q in range(n1):
+        n += idx[q, 0] >= 0
+    i, j = np.empty(n, dtype=np.intp), np.empty(n, dtype=np.intp)
+    s1, s2 = np.empty(n, dtype=np.float32), np.empty(n, dtype=np.float32)
+    mutual = np.empty(n, dtype=np.bool_)
+    n = 0
+    for q in range(n1):
+        if idx[q, 0] >= 0:
+            i[n], j[n], s1[n], s2[n] = q, idx[q, 0], sc[q, 0], sc[q, 1]
+            mutual[n] = col_i[idx[q, 0]] == q
+            n += 1
+    if pad_j.shape[0] and n:
+        padded = np.empty(n, dtype=np.int64)
+        m = 0
+        for r in range(n):
+            keep = True
+            if prefilter:
+                keep = (ratio >= 1 or _ratio(_distance(s1[r], root), _distance(s2[r], root)) < ratio) and \
+                       (mutual[r] or not mutual_rule)
+            if keep:
+                padded[m] = r
+                m += 1
+        qi, ex = np.empty(m, dtype=np.int64), np.empty(m, dtype=np.int64)
+        for r in range(m):
+            qi[r], ex[r] = i[padded[r]], j[padded[r]]
+        out = np.empty(m, dtype=np.float32)
+        if norm == _kernels.L2SQR:
+            C, D = pad_j.shape[0], A.shape[1]
+            bt2 = np.empty((D, C), dtype=np.float32)
+            for c in range(C):
+                for f in range(D):
+                    bt2[f, c] = B[pad_j[c], f] * np.float32(-2.0)
+            bb = _kernels.squared_norms(B, pad_j)
+            _kernels.padding_l2(A, qi, bt2, bb, pad_j, ex, 0, m, np.empty((chunk, D), np.float32),
+                                np.empty((chunk, C), np.float32), out, round_to)
+        else:
+            _kernels._nearest_rows(0, m, A, B, qi, pad_j, ex, norm, out)
+        for r in range(m):
+            s2[padded[r]] = min(s2[padded[r]], out[r])
+    ratios = np.empty(n)
+    for r in range(n):
+        ratios[r] = _ratio(_distance(s1[r], root), _distance(s2[r], root))
+    return i, j, ratios, mutual, counts
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def segment_keep(line, start, end, valid, i, y, j, tol):
+    """``(K,)`` bool: keypoint ``y[j[k]]`` within ``tol`` of segment ``i[k]`` (``line``, ``start``, ``end``,
+    ``valid``: the arrays of :class:`~episeg_cv.EpipolarSegments`). A pair far from the line (beyond a
+    rounding margin) is out without the segment distance; an undefined (NaN) line lets the segment
+    distance decide. The distance is :func:`episeg_cv.geometry.point_segment_distance`'s, in the same
+    order."""
+    keep = np.zeros(j.shape[0], dtype=np.bool_)
+    far = tol * (1 + 1e-6) + 1e-6
+    for k in range(j.shape[0]):
+        q = i[k]
+        p0, p1 = y[j[k], 0], y[j[k], 1]
+        if not valid[q] or abs(line[q, 0] * p0 + line[q, 1] * p1 + line[q, 2]) > far:
+            continue
+        s0, s1 = start[q, 0], start[q, 1]
+        d0, d1 = end[q, 0] - s0, end[q, 1] - s1
+        dd = d0 * d0 + d1 * d1
+        u = 0.0
+        if dd > 0:
+            u = min(max(((p0 - s0) * d0 + (p1 - s1) * d1) / dd, 0.0), 1.0)
+        keep[k] = np.hypot(p0 - s0 - u * d0, p1 - s1 - u * d1) <= tol
+    return keep
+
+
+# -- many small pairs ------------------------------------------------------------------------
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _both_ways(x1, x2, A, B, norm, root, H, b, zr1, rect1, Hi, bi, zr2, rect2, eps, tol, pad_j, loose, mutual_rule,
+               chunk, round_to):
+    """One pair of :func:`pairs`: ``(i, j, ratio, inlier)`` of the candidates with ratio below ``loose``."""
+    i, j, r, mu, _ = nearest(x1, x2, A, B, norm, root, H, b, zr1[0:1], zr1[1:2], rect1, eps, tol, pad_j, loose,
+                             mutual_rule, True, chunk, round_to)
+    m = 0
+    for k in range(i.shape[0]):
+        m += r[k] < loose and (mu[k] or not mutual_rule)
+    ki, kj, kr = np.empty(m, dtype=np.int64), np.empty(m, dtype=np.int64), np.empty(m)
+    m = 0
+    for k in range(i.shape[0]):
+        if r[k] < loose and (mu[k] or not mutual_rule):
+            ki[m], kj[m], kr[m] = i[k], j[k], r[k]
+            m += 1
+    # the reverse test: each match's keypoint of image 2 must have its query on its own segment in image 1
+    y = np.empty((m, 2))
+    for k in range(m):
+        y[k, 0], y[k, 1] = x2[kj[k], 0], x2[kj[k], 1]
+    start, end, line = np.empty((m, 2)), np.empty((m, 2)), np.empty((m, 3))
+    p_inf, a, valid = np.empty((m, 2)), np.empty((m, 3)), np.empty(m, dtype=np.bool_)
+    _gk._segments(0, m, y, Hi, bi, zr2[0:1], zr2[1:2], rect2, eps, start, end, valid, line, p_inf, a)
+    inlier = segment_keep(line, start, end, valid, np.arange(m), x1, ki, tol)
+    return ki, kj, kr, inlier
+
+
+@nb.njit(cache=True, nogil=True)
+def _pair_range(p0, p1, X, A, first, img, H, b, Hi, bi, zr, rects, eps, tol, pad, pad_first, norm, root, loose,
+                mutual_rule, chunk, round_to, out_first, out_i, out_j, out_r, out_in, out_n):
+    for p in range(p0, p1):
+        u, v = img[p, 0], img[p, 1]
+        ki, kj, kr, inl = _both_ways(X[first[u]:first[u + 1]], X[first[v]:first[v + 1]], A[first[u]:first[u + 1]],
+                                     A[first[v]:first[v + 1]], norm, root, H[p], b[p], zr[u], rects[p, 0], Hi[p],
+                                     bi[p], zr[v], rects[p, 1], eps, tol, pad[pad_first[p]:pad_first[p + 1]], loose,
+                                     mutual_rule, chunk, round_to)
+        o = out_first[p]
+        for k in range(ki.shape[0]):
+            out_i[o + k], out_j[o + k], out_r[o + k], out_in[o + k] = ki[k], kj[k], kr[k], inl[k]
+        out_n[p] = ki.shape[0]
+
+
+@nb.njit(cache=True, nogil=True)
+def pairs(X, A, first, img, H, b, Hi, bi, zr, rects, eps, tol, pad, pad_first, norm, root, loose, mutual_rule,
+          chunk, round_to, out_first, out_i, out_j, out_r, out_in, out_n):
+    """Many pairs of images, each matched both ways (:func:`nearest` forward with ratio ``loose`` and the
+    rule's mutual flag, then the reverse segment test), into preallocated outputs.
+
+    Images: their keypoints ``X[first[u]:first[u + 1]]`` (float64 pinhole pixels) and scoring rows
+    ``A[...]``; ``zr (n_images, 2)`` their depth ranges. Pair ``p`` matches image ``img[p, 0]`` to
+    ``img[p, 1]`` with the geometry ``H[p], b[p]`` and its inverse ``Hi[p], bi[p]``, ``rects[p, 0]``
+    / ``rects[p, 1]`` the two images grown by ``tol``, padding references ``pad[pad_first[p]:pad_first[p
+    + 1]]``. Its ``out_n[p]`` candidates go to rows ``out_first[p]:`` of ``out_i, out_j`` (keypoint
+    rows in the two images), ``out_r`` (ratio) and ``out_in`` (the reverse test); ``out_first[p]``
+    leaves room for one per query.
+    """
+    _pair_range(0, img.shape[0], X, A, first, img, H, b, Hi, bi, zr, rects, eps, tol, pad, pad_first, norm, root,
+                loose, mutual_rule, chunk, round_to, out_first, out_i, out_j, out_r, out_in, out_n)
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def pairs_parallel(X, A, first, img, H, b, Hi, bi, zr, rects, eps, tol, pad, pad_first, norm, root, loose,
+                   mutual_rule, chunk, round_to, out_first, out_i, out_j, out_r, out_in, out_n, blocks):
+    """:func:`pairs` on threads, a pair per item (each pair's outputs are its own rows)."""
+    for p in prange(img.shape[0]):
+        _pair_range(p, p + 1, X, A, first, img, H, b, Hi, bi, zr, rects, eps, tol, pad, pad_first, norm, root,
+                    loose, mutual_rule, chunk, round_to, out_first, out_i, out_j, out_r, out_in, out_n)
