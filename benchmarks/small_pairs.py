@@ -76,7 +76,7 @@ def main() -> int:
     meta = machine_metadata()
     lines = ["# The small-pair path against the index path (`guided.nearest`, one thread)", "",
              f"Made by `{COMMAND}`. {meta if isinstance(meta, str) else ', '.join(f'{k} {v}' for k, v in meta.items())}",
-             "", __doc__.split("\n\n", 2)[2].strip(), "",
+             "", " ".join(next(p for p in __doc__.split("\n\n") if p.startswith("Writes")).split()), "",
              "| pose | keypoints a side | small path (ms) | index path (ms) | index / small | same results | library takes |",
              "|---|---:|---:|---:|---:|---|---|"]
     for pose, n, a, b, same, takes in rows:
