@@ -37,7 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..matching import guided
+from ..matching import guided, small
 from ..matching.auto import clip_tol, strict_rule
 from ..matching.config import AcceptRule, AutoTol, SearchConfig
 from ..matching.distances import Distances
@@ -115,13 +115,26 @@ def collection_band(views, store: FeatureStore, pair_list, search: SearchConfig,
     strict = strict_rule(options, rule)
     largest = max((v.image_size for v in views), key=lambda s: s[0] * s[1])
     residuals, used = [], 0
+    small_ones = []  # (inputs, geometry, wide search) of the pairs matched together at the end
     for i, j in sample_pairs(pair_list, sample):
         inputs, g, _, _ = pair_inputs(views[i], views[j], store)
         inputs = _queries(inputs, spread_subset(inputs.points1, MAX_QUERIES))
         wide = search.replace(tol=options.first_band(views[j].image_size), depth_range=views[i].depth_range)
+        if small.fits(len(inputs.points1), len(inputs.points2), wide, strict, g):
+            small_ones.append((inputs, g, wide, views[j].depth_range))
+            continue
         conf = guided.match(inputs, g, wide, strict)[0]
         if len(conf):
             residuals.append(segment_residuals(g, inputs.points1[conf[:, 0]], inputs.points2[conf[:, 1]]))
+            used += 1
+    # the small pairs in one call on every core, the same matches as guided.match (the reverse test unused)
+    found = small.many([small.SmallPair(x.points1, x.distances.a, x.points2, x.distances.b, g, s.tol, s.depth_range,
+                                        d2) for x, g, s, d2 in small_ones], strict, strict.ratio,
+                       small_ones[0][0].distances.norm if small_ones else "l2",
+                       lambda n2, n_pad: guided.padding_references(0, n2, n_pad))
+    for (x, g, _, _), (qi, kj, _, _) in zip(small_ones, found):
+        if len(qi):
+            residuals.append(segment_residuals(g, x.points1[qi], x.points2[kj]))
             used += 1
     r = np.concatenate(residuals) if residuals else np.zeros(0)
     fallback = len(r) < options.min_matches

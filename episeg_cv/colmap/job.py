@@ -6,12 +6,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .. import threads
-from ..geometry import CHEIRALITY_EPS, _rect
-from ..matching import _small_kernels as _sk
 from ..matching import guided, small
 from ..matching.config import AcceptRule, SearchConfig
-from ..matching.distances import PAD_CHUNK, PAD_ROUND, Distances
+from ..matching.distances import Distances
 from ..matching.filtering import keep_mask
 from .store import FeatureStore
 from .views import View
@@ -150,62 +147,27 @@ def match_pairs(jobs: list) -> list:
 
 
 def _image_rows(view: View, store: FeatureStore):
-    """``(points, scoring rows, stored indices or None, norm code)`` of an image's keypoints with a pinhole
-    position, as :func:`pair_inputs` keeps them."""
+    """``(points, scoring rows, stored indices or None)`` of an image's keypoints with a pinhole position,
+    as :func:`pair_inputs` keeps them."""
     _, q, d = store.load(view)
     idx = None if np.isfinite(q).all() else np.flatnonzero(np.isfinite(q[:, 0]) & np.isfinite(q[:, 1]))
     if idx is not None:
         q, d = q[idx], d[idx]
-    dist = Distances(d, d[:0], store.norm)
-    return np.ascontiguousarray(q, dtype=np.float64), dist.a, idx, dist.code
+    return np.ascontiguousarray(q, dtype=np.float64), Distances(d, d[:0], store.norm).a, idx
 
 
 def _match_batch(jobs: list, images: dict) -> list:
     if not jobs:
         return []
     job0 = jobs[0]
-    names = list(images)
-    where = {n: k for k, n in enumerate(names)}
-    X = np.concatenate([images[n][0] for n in names])
-    A = np.ascontiguousarray(np.concatenate([images[n][1] for n in names]))
-    first = np.concatenate([[0], np.cumsum([len(images[n][0]) for n in names])]).astype(np.int64)
-    zr = np.zeros((len(names), 2))
-    for job in jobs:
-        for v in (job.view1, job.view2):
-            zr[where[v.name]] = v.depth_range
-    img = np.array([[where[j.view1.name], where[j.view2.name]] for j in jobs], dtype=np.int64).reshape(-1, 2)
     geoms = [j.view1.geometry_to(j.view2) for j in jobs]
-    inverses = [g.inverse() for g in geoms]
-    H = np.array([g.infinity_homography for g in geoms]).reshape(-1, 3, 3)
-    b = np.array([g.epipole_homogeneous for g in geoms]).reshape(-1, 3)
-    Hi = np.array([g.infinity_homography for g in inverses]).reshape(-1, 3, 3)
-    bi = np.array([g.epipole_homogeneous for g in inverses]).reshape(-1, 3)
-    tol = float(job0.search.tol)
-    rects = np.array([[_rect(g.image_size2, tol), _rect(g.image_size1, tol)] for g in geoms]).reshape(-1, 2, 4)
-    n1 = first[img[:, 0] + 1] - first[img[:, 0]]
-    n2 = first[img[:, 1] + 1] - first[img[:, 1]]
-    pads = [guided.padding_references(0, int(m2), min(job0.rule.pad, int(m2))) if min(job0.rule.pad, m2) and m1
-            else np.zeros(0, dtype=np.int64) for m1, m2 in zip(n1, n2)]
-    pad = np.concatenate(pads + [np.zeros(0, dtype=np.int64)]).astype(np.int64)
-    pad_first = np.concatenate([[0], np.cumsum([len(p) for p in pads])]).astype(np.int64)
-    out_first = np.concatenate([[0], np.cumsum(n1)]).astype(np.int64)
-    total = int(out_first[-1])
-    out_i, out_j = np.empty(total, dtype=np.int64), np.empty(total, dtype=np.int64)
-    out_r, out_in = np.empty(total), np.empty(total, dtype=np.bool_)
-    out_n = np.zeros(len(jobs), dtype=np.int64)
-    rule = job0.rule
-    loose = rule.ratio if job0.loose is None else job0.loose  # (the pair rule: its own ratio)
-    norm = images[names[0]][3]
-    with threads.blas_limit(1):
-        threads.run(_sk.pairs, _sk.pairs_parallel, total if len(jobs) > 1 else 0, X, A, first, img, H, b, Hi, bi, zr,
-                    rects, CHEIRALITY_EPS, tol, pad, pad_first, norm, job0.store.norm == "l2", float(loose),
-                    bool(rule.mutual or rule.cross_check), PAD_CHUNK, PAD_ROUND, out_first, out_i, out_j, out_r,
-                    out_in, out_n)
+    items = [small.SmallPair(*images[j.view1.name][:2], *images[j.view2.name][:2], g, job0.search.tol,
+                             j.view1.depth_range, j.view2.depth_range) for j, g in zip(jobs, geoms)]
+    loose = job0.rule.ratio if job0.loose is None else job0.loose  # (the pair rule: its own ratio)
+    found = small.many(items, job0.rule, loose, job0.store.norm, lambda n2, n_pad: guided.padding_references(0, n2, n_pad))
     results = []
-    for p, job in enumerate(jobs):
-        o, n = out_first[p], out_n[p]
-        pairs = np.column_stack([out_i[o:o + n], out_j[o:o + n]]).astype(np.intp)
-        ratios = out_r[o:o + n] if job.loose is not None else None
-        results.append(_result(job, geoms[p], images[job.view1.name][0], pairs, out_in[o:o + n], ratios,
+    for job, g, (i, j, r, inlier) in zip(jobs, geoms, found):
+        pairs = np.column_stack([i, j]).astype(np.intp)
+        results.append(_result(job, g, images[job.view1.name][0], pairs, inlier, r if job.loose is not None else None,
                                images[job.view1.name][2], images[job.view2.name][2]))
     return results

@@ -34,7 +34,7 @@ from ..matching.config import AcceptRule, AutoTol, SearchConfig, resolve
 from .band import collection_band, sample_pairs
 from .consensus import TrackConsensus, verify_tracks
 from .database import (check_database_path, check_resumable, create_database, database_lock, pair_unchanged,
-                       write_pair)
+                       write_pair, write_pairs)
 from .dbfeatures import SOURCE, DatabaseFeatureStore, check_feature_database, database_views, prepare_feature_database
 from .job import PairJob, match_pairs
 from .model import auto_depth_ranges, load_model, reconstruction_from_views
@@ -58,8 +58,12 @@ EXHAUSTIVE_WARN = 300
 COLLECTION_TOL = "auto"
 
 #: Pairs, evenly spread over the pair list, whose search lengths are measured (:attr:`MatchReport.search_length`):
-#: two more segment computations per pair cost 10 % of matching a pair of 250 keypoints (dinoSparseRing).
-LENGTH_PAIRS = 32
+#: two more segment computations per pair cost 10 % of matching a pair of 250 keypoints (dinoSparseRing) on
+#: the general path, as much as the pair itself on the small-pair path.
+LENGTH_PAIRS = 16
+
+#: Pairs per database transaction after the track consensus (:func:`.database.write_pairs`).
+WRITE_BLOCK = 64
 
 #: The values of ``verify``: the track consensus of the whole collection, or each pair on its own.
 VERIFY = ("tracks", "pairs")
@@ -470,15 +474,20 @@ class _Run:
             report.verify.update(stats)
             db = pycolmap.Database.open(str(self.path))
             try:
+                block = []
                 for n, ((i, j), res, k) in enumerate(zip(todo, results, keep), 1):
                     inliers = res.inliers[k]
                     if (i, j) in done and pair_unchanged(db, views[i], views[j], res.matches, inliers):
                         report.n_skipped += 1
                     else:
-                        write_pair(db, views[i], views[j], res.matches, inliers, replace=(i, j) in done)
-                        report.n_matches += len(res.matches)
-                        report.n_inliers += len(inliers)
-                        report.n_pairs_done += 1
+                        block.append((views[i], views[j], res.matches, inliers, (i, j) in done))
+                    if block and (len(block) == WRITE_BLOCK or n == len(todo)):
+                        write_pairs(db, block)
+                        for _, _, matches, inliers, _ in block:
+                            report.n_matches += len(matches)
+                            report.n_inliers += len(inliers)
+                        report.n_pairs_done += len(block)
+                        block = []
                     self.tick("write", n, len(todo))
             finally:
                 db.close()

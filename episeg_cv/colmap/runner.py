@@ -32,7 +32,7 @@ import cv2
 
 from ..threads import limit_this_thread
 
-__all__ = ["Runner", "CONNECT_TIMEOUT", "warm_up", "warm_batch", "single_thread", "watch_parent", "undo_malloc_trim"]
+__all__ = ["Runner", "CONNECT_TIMEOUT", "warm_up", "single_thread", "watch_parent", "undo_malloc_trim"]
 
 #: Seconds to wait for a Dask scheduler before giving up.
 CONNECT_TIMEOUT = 10.0
@@ -41,8 +41,8 @@ TASKS_PER_WORKER = 4
 #: Pairs per task in this process, and per task of a pool of threads. A task's small pairs are one
 #: compiled call (:func:`~.job.match_pairs`), whose Python is per task: on dinoSparseRing (120 pairs of
 #: about 250 keypoints) 2 threads took 0.054 s with 8 pairs a task, 0.049 s with 16 and 0.045 s with 32;
-#: fewer, longer tasks balance large pairs worse.
-PROCESS_CHUNK, THREAD_CHUNK = 64, 16
+#: on the 24-view room (276 pairs of about 4500 keypoints) 8, 16 and 32 gave the same pairs/s (280-290).
+PROCESS_CHUNK, THREAD_CHUNK = 64, 32
 #: Bounds on the pairs of one Dask task.
 DASK_CHUNK_MIN, DASK_CHUNK_MAX = 8, 64
 
@@ -99,7 +99,7 @@ def warm_up() -> None:
     import numpy as np
 
     from ..geometry import TwoViewGeometry
-    from ..matching import guided
+    from ..matching import guided, small
     from ..matching.config import AcceptRule, SearchConfig
     from ..matching.filtering import keep_mask
 
@@ -111,27 +111,9 @@ def warm_up() -> None:
     pairs, _ = guided.match(inputs, g, SearchConfig(), AcceptRule())
     guided.nearest(inputs, g, SearchConfig(), AcceptRule(), prefilter=True)
     keep_mask(pairs, p, p, g, SearchConfig())
-    warm_batch(g, p, inputs.distances.a)
-
-
-def warm_batch(g, p, a) -> None:
-    """Load the many-small-pairs kernels (:func:`~episeg_cv.matching._small_kernels.pairs` and its parallel
-    twin) with one pair of the points ``p`` and scoring rows ``a`` (float32) to themselves."""
-    import numpy as np
-
-    from ..geometry import CHEIRALITY_EPS, _rect
-    from ..matching import _small_kernels as _sk
-
-    gi = g.inverse()
-    n = len(p)
-    args = (np.ascontiguousarray(np.concatenate([p, p])), np.ascontiguousarray(np.concatenate([a, a])),
-            np.array([0, n, 2 * n]), np.array([[0, 1]]), g.infinity_homography[None], g.epipole_homogeneous[None],
-            gi.infinity_homography[None], gi.epipole_homogeneous[None], np.array([[0.0, np.inf], [0.0, np.inf]]),
-            np.array([[_rect(g.image_size2, 2.0), _rect(g.image_size1, 2.0)]]), CHEIRALITY_EPS, 2.0,
-            np.arange(n), np.array([0, n]), 0, True, 1.0, True, 64, 64, np.array([0, n]), np.empty(n, np.int64),
-            np.empty(n, np.int64), np.empty(n), np.empty(n, np.bool_), np.zeros(1, np.int64))
-    _sk.pairs(*args)
-    _sk.pairs_parallel(*args, 1)
+    a, inf = inputs.distances.a, float("inf")  # the many-small-pairs kernel (serial: a worker runs one thread)
+    small.many([small.SmallPair(p, a, p, a, g, 2.0, (0.0, inf), (0.0, inf))], AcceptRule(), 1.0, "l2",
+               lambda n2, n_pad: np.arange(n_pad))
 
 
 def watch_parent(pid: int, interval: float = 1.0) -> None:

@@ -232,7 +232,7 @@ def _pair_range(p0, p1, X, A, first, img, H, b, Hi, bi, zr, rects, eps, tol, pad
         u, v = img[p, 0], img[p, 1]
         ki, kj, kr, inl = _both_ways(X[first[u]:first[u + 1]], X[first[v]:first[v + 1]], A[first[u]:first[u + 1]],
                                      A[first[v]:first[v + 1]], norm, root, H[p], b[p], zr[u], rects[p, 0], Hi[p],
-                                     bi[p], zr[v], rects[p, 1], eps, tol, pad[pad_first[p]:pad_first[p + 1]], loose,
+                                     bi[p], zr[v], rects[p, 1], eps, tol[p], pad[pad_first[p]:pad_first[p + 1]], loose,
                                      mutual_rule, chunk, round_to)
         o = out_first[p]
         for k in range(ki.shape[0]):
@@ -248,8 +248,8 @@ def pairs(X, A, first, img, H, b, Hi, bi, zr, rects, eps, tol, pad, pad_first, n
 
     Images: their keypoints ``X[first[u]:first[u + 1]]`` (float64 pinhole pixels) and scoring rows
     ``A[...]``; ``zr (n_images, 2)`` their depth ranges. Pair ``p`` matches image ``img[p, 0]`` to
-    ``img[p, 1]`` with the geometry ``H[p], b[p]`` and its inverse ``Hi[p], bi[p]``, ``rects[p, 0]``
-    / ``rects[p, 1]`` the two images grown by ``tol``, padding references ``pad[pad_first[p]:pad_first[p
+    ``img[p, 1]`` with the geometry ``H[p], b[p]`` and its inverse ``Hi[p], bi[p]``, the band ``tol[p]``,
+    ``rects[p, 0]`` / ``rects[p, 1]`` the two images grown by it, padding references ``pad[pad_first[p]:pad_first[p
     + 1]]``. Its ``out_n[p]`` candidates go to rows ``out_first[p]:`` of ``out_i, out_j`` (keypoint
     rows in the two images), ``out_r`` (ratio) and ``out_in`` (the reverse test); ``out_first[p]``
     leaves room for one per query.

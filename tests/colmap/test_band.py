@@ -142,3 +142,21 @@ def test_the_band_uses_a_spread_subset_of_queries(folder, tmp_path, monkeypatch)
     few = colmap.match_model(folder["model"], folder["images"], tmp_path / "b.db", tol="auto", verify="pairs").band
     assert few["matches"] <= 20 * few["pairs"] < full["matches"]
     assert few["tol"] == full["tol"] == 2.0 and abs(few["sigma"] - full["sigma"]) < 0.2
+
+
+@pytest.mark.parametrize("max_queries", [20, 100])
+def test_small_sample_pairs_in_one_call_give_the_band_of_pair_by_pair(folder, tmp_path, monkeypatch, max_queries):
+    """The sampled pairs that are small (:func:`episeg_cv.matching.small.fits`) are matched together by
+    ``small.many``; forcing every one through ``guided.match`` on the index gives the same band."""
+    from episeg_cv.colmap import band as band_module
+
+    monkeypatch.setattr(band_module, "MAX_QUERIES", max_queries)
+    calls = []
+    real_many = band_module.small.many
+    monkeypatch.setattr(band_module.small, "many", lambda items, *a: calls.append(len(items)) or real_many(items, *a))
+    batched = colmap.match_model(folder["model"], folder["images"], tmp_path / "a.db", tol="auto", verify="pairs").band
+    assert calls and calls[0] > 0  # some sample pairs were small
+    monkeypatch.setattr(band_module.small, "fits", lambda *a: False)
+    one_by_one = colmap.match_model(folder["model"], folder["images"], tmp_path / "b.db", tol="auto",
+                                    verify="pairs").band
+    assert batched == one_by_one and batched["matches"] > 0

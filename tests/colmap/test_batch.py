@@ -49,8 +49,8 @@ def test_batch_equals_pair_by_pair(folder, tmp_path, monkeypatch, verify):
     assert len(jobs) == 10 and report.n_inliers > 0
     calls = []
     for name in ("pairs", "pairs_parallel"):  # (serial or parallel: by the thread count)
-        real = getattr(job_module._sk, name)
-        monkeypatch.setattr(job_module._sk, name, lambda *a, real=real: calls.append(1) or real(*a))
+        real = getattr(small._sk, name)
+        monkeypatch.setattr(small._sk, name, lambda *a, real=real: calls.append(1) or real(*a))
     batch = job_module.match_pairs(jobs)
     assert calls == [1]  # one call for the ten pairs
     assert sum(len(r.inliers) for r in batch) > 0

@@ -14,6 +14,7 @@ import pytest
 pycolmap = pytest.importorskip("pycolmap")
 
 from episeg_cv import colmap, filter_pairs, scenes  # noqa: E402
+from episeg_cv.colmap import pipeline as pipeline_module  # noqa: E402
 from episeg_cv.colmap.dbfeatures import read_database_features  # noqa: E402
 
 pycolmap.logging.minloglevel = 2
@@ -154,9 +155,10 @@ def test_a_database_with_matches_needs_resume_or_overwrite(folder, features_db, 
     _same(colmap.read_database_matches(theirs), ref)
 
 
-def test_interrupted_run_resumes_to_the_same_database(folder, features_db, matched, tmp_path):
+def test_interrupted_run_resumes_to_the_same_database(folder, features_db, matched, tmp_path, monkeypatch):
     db = tmp_path / "int.db"
     shutil.copyfile(features_db, db)
+    monkeypatch.setattr(pipeline_module, "WRITE_BLOCK", 1)  # a transaction per pair (blocks: test_pipeline.py)
 
     def stop(stage, done, total):
         if stage == "write" and done == 3:

@@ -217,8 +217,10 @@ def test_resume_after_a_partial_run_gives_the_same_database(folder, reference, r
 
 
 @pytest.mark.parametrize("verify, stage", [("pairs", "pairs"), ("tracks", "write"), ("tracks", "pairs")])
-def test_interrupted_run_leaves_a_usable_database(folder, reference, reference_pairs, tmp_path, verify, stage):
+def test_interrupted_run_leaves_a_usable_database(folder, reference, reference_pairs, tmp_path, monkeypatch, verify,
+                                                  stage):
     db = tmp_path / "int.db"
+    monkeypatch.setattr(pipeline_module, "WRITE_BLOCK", 1)  # after the consensus: a transaction per pair
 
     def stop_after_two(s, done, total):
         if s == stage and done == 2:
@@ -232,6 +234,25 @@ def test_interrupted_run_leaves_a_usable_database(folder, reference, reference_p
     rest = colmap.match_model(folder["model"], folder["images"], db, resume=True, verify=verify)
     assert rest.n_skipped == len(written)
     _same(colmap.read_database_matches(db), (reference_pairs if verify == "pairs" else reference)[2])
+
+
+@pytest.mark.parametrize("stop_at, written", [(2, 0), (4, 4), (5, 4)])
+def test_consensus_writes_whole_blocks(folder, reference, tmp_path, monkeypatch, stop_at, written):
+    """The consensus's pairs go to the database in transactions of WRITE_BLOCK pairs: an interrupt keeps
+    whole blocks, and the resumed run gives the uninterrupted database."""
+    monkeypatch.setattr(pipeline_module, "WRITE_BLOCK", 4)
+    db = tmp_path / "blocks.db"
+
+    def stop(s, done, total):
+        if s == "write" and done == stop_at:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        colmap.match_model(folder["model"], folder["images"], db, progress=stop)
+    assert len(colmap.read_database_matches(db)) == written
+    rest = colmap.match_model(folder["model"], folder["images"], db, resume=True)
+    assert rest.n_skipped == written and rest.n_pairs_done == 6 - written
+    _same(colmap.read_database_matches(db), reference[2])
 
 
 @pytest.mark.parametrize("verify", ["pairs", "tracks"])
