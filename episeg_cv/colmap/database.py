@@ -29,8 +29,9 @@ try:
 except ImportError:  # pragma: no cover - not on Windows
     fcntl = None
 
-__all__ = ["check_database_path", "create_database", "check_resumable", "write_pair", "write_pairs", "read_database_matches",
-           "database_lock", "pair_unchanged", "RUN_TABLE", "read_run_record", "write_run_record", "remove_stale_partials"]
+__all__ = ["check_database_path", "create_database", "check_resumable", "write_pair", "write_pairs",
+           "read_database_matches", "database_lock", "pair_unchanged", "RUN_TABLE", "read_run_record",
+           "write_run_record", "remove_stale_partials"]
 
 #: The table holding the run record (settings and image hashes).
 RUN_TABLE = "episeg_run"

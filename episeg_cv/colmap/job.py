@@ -119,7 +119,7 @@ def _result(job: PairJob, g, q1, pairs, keep, ratios, idx1, idx2) -> PairResult:
 def match_pairs(jobs: list) -> list:
     """:func:`match_pair` of every job, the same results in the same order. The small pairs
     (:func:`~episeg_cv.matching.small.fits`) are matched in one compiled call
-    (:func:`~episeg_cv.matching._small_kernels.pairs`), on the kernels' threads (a pair per thread);
+    (:func:`~episeg_cv.matching.small.many`), on the kernels' threads (a pair per thread);
     the others one by one. The jobs share one store and one setting (as :func:`~.pipeline.match_model`
     makes them); otherwise all go one by one.
 
@@ -164,7 +164,8 @@ def _match_batch(jobs: list, images: dict) -> list:
     items = [small.SmallPair(*images[j.view1.name][:2], *images[j.view2.name][:2], g, job0.search.tol,
                              j.view1.depth_range, j.view2.depth_range) for j, g in zip(jobs, geoms)]
     loose = job0.rule.ratio if job0.loose is None else job0.loose  # (the pair rule: its own ratio)
-    found = small.many(items, job0.rule, loose, job0.store.norm, lambda n2, n_pad: guided.padding_references(0, n2, n_pad))
+    found = small.many(items, job0.rule, loose, job0.store.norm,
+                       lambda n2, n_pad: guided.padding_references(0, n2, n_pad))
     results = []
     for job, g, (i, j, r, inlier) in zip(jobs, geoms, found):
         pairs = np.column_stack([i, j]).astype(np.intp)

@@ -57,11 +57,12 @@ def nearest(inputs, geometry: TwoViewGeometry, search: SearchConfig, rule: Accep
     zmin = np.ascontiguousarray(np.atleast_1d(zmin), dtype=np.float64)
     zmax = np.ascontiguousarray(np.atleast_1d(zmax), dtype=np.float64)
     with threads.blas_limit(1):  # (the padding's products: one thread, as in Distances.nearest_excluding)
-        return _sk.nearest(np.ascontiguousarray(inputs.points1), np.ascontiguousarray(inputs.points2), dist.a, dist.b, dist.code, dist.norm == "l2",
-                           np.ascontiguousarray(geometry.infinity_homography), geometry.epipole_homogeneous, zmin,
-                           zmax, np.array(_rect(geometry.image_size2, search.tol)), CHEIRALITY_EPS, float(search.tol),
-                           np.ascontiguousarray(pad_j, dtype=np.int64), float(rule.ratio),
-                           bool(rule.mutual or rule.cross_check), bool(prefilter), PAD_CHUNK, PAD_ROUND)
+        return _sk.nearest(np.ascontiguousarray(inputs.points1), np.ascontiguousarray(inputs.points2), dist.a, dist.b,
+                           dist.code, dist.norm == "l2", np.ascontiguousarray(geometry.infinity_homography),
+                           geometry.epipole_homogeneous, zmin, zmax, np.array(_rect(geometry.image_size2, search.tol)),
+                           CHEIRALITY_EPS, float(search.tol), np.ascontiguousarray(pad_j, dtype=np.int64),
+                           float(rule.ratio), bool(rule.mutual or rule.cross_check), bool(prefilter), PAD_CHUNK,
+                           PAD_ROUND)
 
 
 @dataclass(frozen=True)
@@ -97,19 +98,20 @@ def many(items: list, rule: AcceptRule, ratio: float, norm: str, pad_refs) -> li
     if not items:
         return []
     arrays, where = [], {}
-    def slot(points, rows):
-        key = (id(points), id(rows))
+
+    def slot(points, rows, depth):  # an image's arrays once, with its depth range
+        key = (id(points), id(rows), tuple(float(z) for z in depth))
         if key not in where:
             where[key] = len(arrays)
-            arrays.append((points, rows))
+            arrays.append((points, rows, key[2]))
         return where[key]
-    img = np.array([[slot(it.points1, it.rows1), slot(it.points2, it.rows2)] for it in items], dtype=np.int64)
-    X = np.ascontiguousarray(np.concatenate([p for p, _ in arrays]), dtype=np.float64)
-    A = np.ascontiguousarray(np.concatenate([r for _, r in arrays]))
-    first = np.concatenate([[0], np.cumsum([len(p) for p, _ in arrays])]).astype(np.int64)
-    zr = np.zeros((len(arrays), 2))
-    for it, (u, v) in zip(items, img):
-        zr[u], zr[v] = it.depth1, it.depth2
+
+    img = np.array([[slot(it.points1, it.rows1, it.depth1), slot(it.points2, it.rows2, it.depth2)] for it in items],
+                   dtype=np.int64)
+    X = np.ascontiguousarray(np.concatenate([p for p, _, _ in arrays]), dtype=np.float64)
+    A = np.ascontiguousarray(np.concatenate([r for _, r, _ in arrays]))
+    first = np.concatenate([[0], np.cumsum([len(p) for p, _, _ in arrays])]).astype(np.int64)
+    zr = np.array([z for _, _, z in arrays], dtype=np.float64).reshape(-1, 2)
     inverses = [it.geometry.inverse() for it in items]
     H = np.array([it.geometry.infinity_homography for it in items]).reshape(-1, 3, 3)
     b = np.array([it.geometry.epipole_homogeneous for it in items]).reshape(-1, 3)

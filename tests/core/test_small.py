@@ -111,3 +111,30 @@ def test_segment_keep_is_the_distance_to_the_segment(seed):
     empty = _small_kernels.segment_keep(seg.line, seg.start, seg.end, seg.valid, np.zeros(0, np.int64), p2,
                                         np.zeros(0, np.int64), 1.0)
     assert empty.dtype == bool and empty.shape == (0,)
+
+
+def test_many_pairs_in_one_call_equal_nearest_and_keep_mask():
+    """small.many on pairs that share arrays, with different depth ranges and bands: each pair's
+    nearest candidates (ratio and mutual rule), and the reverse test of keep_mask, as one by one."""
+    rng = np.random.default_rng(11)
+    g1, inputs = _case(rng, 150, 170, [1.0, 0.1, 0.2], "l2")
+    g2 = TwoViewGeometry(K, K, cv2.Rodrigues(np.array([0.1, -0.2, 0.05]))[0], [0.2, 1.0, -0.1], image_size1=SIZE,
+                         image_size2=SIZE)
+    x1, x2, a, b = inputs.points1, inputs.points2, inputs.distances.a, inputs.distances.b
+    rule = AcceptRule(ratio=1.0)
+    cases = [(g1, 2.0, (0.0, np.inf), (0.0, np.inf)), (g1, 2.0, (0.5, 3.0), (0.2, 2.0)),
+             (g2, 6.0, (0.5, 3.0), (1.5, 1.8))]
+    items = [small.SmallPair(x1, a, x2, b, g, tol, d1, d2) for g, tol, d1, d2 in cases]
+    found = small.many(items, rule, 1.0, "l2", lambda n2, n_pad: guided.padding_references(3, n2, n_pad))
+    assert len(found) == 3
+    for (g, tol, d1, d2), (i, j, r, inlier) in zip(cases, found):
+        ii, jj, rr, mu, _ = guided.nearest(inputs, g, SearchConfig(tol=tol, depth_range=d1), rule, rng=3,
+                                           prefilter=True)
+        keep = (rr < 1.0) & mu
+        assert np.array_equal(i, ii[keep]) and np.array_equal(j, jj[keep]) and np.array_equal(r, rr[keep])
+        pairs = np.column_stack([j, i]).astype(np.intp)
+        want = keep_mask(pairs, x2, x1, g.inverse(), SearchConfig(tol=tol, depth_range=d2))
+        assert inlier.dtype == bool and np.array_equal(inlier, want)
+    assert len(found[0][0]) != len(found[1][0])  # the depth ranges mattered
+    assert any(f[3].any() for f in found) and any((~f[3]).any() for f in found)  # the reverse test can fail
+    assert small.many([], rule, 1.0, "l2", None) == []
