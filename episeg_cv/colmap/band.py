@@ -115,7 +115,7 @@ def collection_band(views, store: FeatureStore, pair_list, search: SearchConfig,
     strict = strict_rule(options, rule)
     largest = max((v.image_size for v in views), key=lambda s: s[0] * s[1])
     residuals, used = [], 0
-    small_ones = []  # (inputs, geometry, wide search) of the pairs matched together at the end
+    small_ones = []  # (inputs, geometry, wide search, view 2's depth range) of the pairs matched together
     for i, j in sample_pairs(pair_list, sample):
         inputs, g, _, _ = pair_inputs(views[i], views[j], store)
         inputs = _queries(inputs, spread_subset(inputs.points1, MAX_QUERIES))
@@ -129,8 +129,7 @@ def collection_band(views, store: FeatureStore, pair_list, search: SearchConfig,
             used += 1
     # the small pairs in one call on every core, the same matches as guided.match (the reverse test unused)
     found = small.many([small.SmallPair(x.points1, x.distances.a, x.points2, x.distances.b, g, s.tol, s.depth_range,
-                                        d2) for x, g, s, d2 in small_ones], strict, strict.ratio,
-                       small_ones[0][0].distances.norm if small_ones else "l2",
+                                        d2) for x, g, s, d2 in small_ones], strict, strict.ratio, store.norm,
                        lambda n2, n_pad: guided.padding_references(0, n2, n_pad))
     for (x, g, _, _), (qi, kj, _, _) in zip(small_ones, found):
         if len(qi):

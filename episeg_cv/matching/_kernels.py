@@ -380,16 +380,21 @@ def nearest_excluding_parallel(A, B, qi, tj, exclude, norm, blocks):
 
 
 @nb.njit(cache=True, nogil=True)
-def squared_norms(B, rows):
-    """``(len(rows),)`` float32 squared norms of the rows ``B[rows]``, summed in order (the padding's
-    ``|b|^2``, the same bits wherever it is computed)."""
-    out = np.empty(rows.shape[0], dtype=np.float32)
-    for c in range(rows.shape[0]):
+def padding_operands(B, tj):
+    """``(BT2 (D, C), bb (C,))`` float32 of the padding references ``B[tj]`` for :func:`padding_l2`: their
+    descriptors times ``-2`` (exact: a power of two), transposed, and their squared norms summed in
+    order (the same bits wherever they are computed)."""
+    C, D = tj.shape[0], B.shape[1]
+    bt2 = np.empty((D, C), dtype=np.float32)
+    bb = np.empty(C, dtype=np.float32)
+    for c in range(C):
         s = np.float32(0.0)
-        for f in range(B.shape[1]):
-            s += B[rows[c], f] * B[rows[c], f]
-        out[c] = s
-    return out
+        for f in range(D):
+            x = np.float32(B[tj[c], f])
+            bt2[f, c] = x * np.float32(-2.0)
+            s += x * x
+        bb[c] = s
+    return bt2, bb
 
 
 @nb.njit(cache=True, nogil=True)

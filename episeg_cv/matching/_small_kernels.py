@@ -156,14 +156,9 @@ def nearest(x1, x2, A, B, norm, root, H, b, zmin, zmax, rect, eps, tol, pad_j, r
             qi[r], ex[r] = i[padded[r]], j[padded[r]]
         out = np.empty(m, dtype=np.float32)
         if norm == _kernels.L2SQR:
-            C, D = pad_j.shape[0], A.shape[1]
-            bt2 = np.empty((D, C), dtype=np.float32)
-            for c in range(C):
-                for f in range(D):
-                    bt2[f, c] = B[pad_j[c], f] * np.float32(-2.0)
-            bb = _kernels.squared_norms(B, pad_j)
-            _kernels.padding_l2(A, qi, bt2, bb, pad_j, ex, 0, m, np.empty((chunk, D), np.float32),
-                                np.empty((chunk, C), np.float32), out, round_to)
+            bt2, bb = _kernels.padding_operands(B, pad_j)
+            _kernels.padding_l2(A, qi, bt2, bb, pad_j, ex, 0, m, np.empty((chunk, A.shape[1]), np.float32),
+                                np.empty((chunk, pad_j.shape[0]), np.float32), out, round_to)
         else:
             _kernels._nearest_rows(0, m, A, B, qi, pad_j, ex, norm, out)
         for r in range(m):

@@ -75,9 +75,7 @@ class Distances:
         if len(qi) == 0 or len(tj) == 0:
             out.fill(np.inf)
             return out
-        b = np.ascontiguousarray(self.b[tj])
-        bt2 = np.ascontiguousarray(b.T) * np.float32(-2.0)  # exact: a power of two
-        bb = _kernels.squared_norms(self.b, tj)
+        bt2, bb = _kernels.padding_operands(self.b, tj)
         chunks = -(-len(qi) // PAD_CHUNK)
         n = min(threads.get_num_threads(), chunks)
         D = self.a.shape[1]
