@@ -27,8 +27,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-import episeg_cv
-
 #: README.txt of dinoSparseRing: the "tight" bounding box of the object, metres.
 DINO_BOX = (np.array([-0.061897, -0.018874, -0.057845]), np.array([0.010897, 0.068227, 0.015495]))
 DINO_MARGIN = 0.003  # metres
@@ -315,25 +313,17 @@ def run_parallel(model, image_dir, work: Path, repeats: int, dask: bool) -> dict
     cache = work / "cache"
     colmap.match_model(model, image_dir, work / "warm.db", cache_dir=cache, overwrite=True, log=lambda m: None)
     reference = colmap.read_database_matches(work / "warm.db")
-    # "one kernel thread": the same single worker with episeg_cv.set_num_threads(1), so that the pairs-in-parallel
-    # gain of workers=2 (each worker's kernels on one thread) can be told from the queries-in-parallel gain of the
-    # kernels inside one worker (the default, every core)
-    runners = {"workers=1": {"workers": 1}, "workers=1, one kernel thread": {"workers": 1, "kernel_threads": 1},
-               "workers=2": {"workers": 2}}
+    # workers = cores: workers=1 runs everything on one core (COLMAP's num_threads=1), workers=2 on two
+    runners = {"workers=1": {"workers": 1}, "workers=2": {"workers": 2}}
     if dask:
         runners["Dask local:2"] = {"scheduler": "local:2"}
     out = {label: {"pairs_per_second": [], "seconds_matching": [], "identical": True} for label in runners}
     for r in range(repeats):
         for label, kw in runners.items():
-            kw = dict(kw)
-            episeg_cv.set_num_threads(kw.pop("kernel_threads", None))
             db = work / f"{label.replace(' ', '_').replace(':', '').replace(',', '')}.db"
             t0, c0 = time.perf_counter(), time.process_time()
-            try:
-                report = colmap.match_model(model, image_dir, db, cache_dir=cache, overwrite=True, log=lambda m: None,
-                                            **kw)
-            finally:
-                episeg_cv.set_num_threads(None)
+            report = colmap.match_model(model, image_dir, db, cache_dir=cache, overwrite=True, log=lambda m: None,
+                                        **kw)
             e = out[label]
             # this process's CPU time per wall second: about the cores the threads got (not Dask's workers)
             e["cpu_per_wall"] = e.get("cpu_per_wall", []) + [(time.process_time() - c0) / (time.perf_counter() - t0)]
@@ -446,6 +436,11 @@ def markdown(res: dict) -> list:
             L.append(f"| {label} ({e['runner']}) | {e['pairs_per_second_median']:.1f} | {e['speed_up']:.2f}x | "
                      f"{'yes' if e['identical'] else '**no**'} | {np.median(e['cpu_per_wall']):.2f} |")
         L.append("")
+        L.append("`workers` counts cores, as COLMAP's `num_threads`: `workers=1` runs everything (pairs, band, "
+                 "track consensus) on one core; `workers=2` runs the pairs on two threads, one pair each, and the "
+                 "band's pairs and the consensus on two kernel threads; Dask `local:2` runs the pairs in two worker "
+                 "processes of one thread each (the band's pairs too), the consensus in this process.")
+        L.append("")
         L.append("The last column is the CPU time of the benchmark process per second of wall time: with "
                  "`workers=2` it shows how many cores the two threads actually got (near 1.0 on a busy machine: "
                  "then no speed-up can show). Dask's workers are other processes, not counted there.")
@@ -454,14 +449,5 @@ def markdown(res: dict) -> list:
             f"{label}: {e['speed_up']:.2f}x ({'met' if e['speed_up'] >= need else 'not met'})"
             for label, e, need in ((k, v, 1.6 if k == "workers=2" else 1.4) for k, v in P["runners"].items()
                                    if not k.startswith("workers=1"))) + ".")
-        one = P["runners"].get("workers=1, one kernel thread")
-        if one and "workers=2" in P["runners"]:
-            w2 = P["runners"]["workers=2"]["pairs_per_second_median"]
-            L.append("")
-            L.append(f"Where the speed-up goes: `workers=2` runs each worker's kernels on one thread, so against one "
-                     f"worker with one kernel thread it is {w2 / one['pairs_per_second_median']:.2f}x (pairs in "
-                     f"parallel); the default single worker already runs its kernels on every core, "
-                     f"{P['runners']['workers=1']['pairs_per_second_median'] / one['pairs_per_second_median']:.2f}x "
-                     "its one-thread speed (queries in parallel). On 2 cores the two compete for the same cores.")
     L.append("")
     return L

@@ -30,8 +30,8 @@ import numpy as np
 
 from .interrupts import interrupt_in
 
-__all__ = ["set_num_threads", "get_num_threads", "limit_this_thread", "use_parallel", "call_parallel", "run",
-           "blas_limit", "Scratch", "blocks", "MIN_PARALLEL_ITEMS", "BLOCKS_PER_THREAD"]
+__all__ = ["set_num_threads", "get_num_threads", "limit_this_thread", "limited", "use_parallel", "call_parallel",
+           "run", "blas_limit", "Scratch", "blocks", "MIN_PARALLEL_ITEMS", "BLOCKS_PER_THREAD"]
 
 #: Below this many items (rows, points, keypoints) a kernel runs its serial variant: forking threads
 #: costs more than it saves (a few microseconds on an idle machine, milliseconds on an oversubscribed one).
@@ -127,6 +127,26 @@ def limit_this_thread(n: int | None) -> None:
         if n < 1:
             raise ValueError(f"n must be an int >= 1 or None, got {n}")
     _this_thread.limit = n
+
+
+@contextlib.contextmanager
+def limited(n: int | None):
+    """A context that caps this Python thread's kernels at ``n`` threads (:func:`limit_this_thread`) and
+    puts back the cap it had before, when it closes.
+
+    Examples
+    --------
+    >>> import episeg_cv
+    >>> with limited(1):
+    ...     episeg_cv.get_num_threads()
+    1
+    """
+    before = getattr(_this_thread, "limit", None)
+    limit_this_thread(n)
+    try:
+        yield
+    finally:
+        _this_thread.limit = before
 
 
 def use_parallel(items: int) -> bool:

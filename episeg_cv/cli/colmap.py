@@ -70,8 +70,9 @@ def add_parser(sub, parents) -> None:
     p.add_argument("--loose-ratio", type=ratio_arg, default=None, metavar="R",
                    help=f"candidates below this ratio are edges of the track consensus (default: "
                         f"{TrackConsensus().loose}, every mutual candidate)")
-    p.add_argument("--workers", type=positive_int, default=1, metavar="N",
-                   help="threads for features and pairs (the compiled kernels run in parallel)")
+    p.add_argument("--workers", type=positive_int, default=None, metavar="N",
+                   help="cores to use (default: every core): N threads for features and pairs, one pair per "
+                        "thread; 1 runs everything on one core")
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="Dask scheduler address (workers started with 'dask worker ADDRESS'), or local:N for a new "
                         "LocalCluster of N processes (needs episeg_cv[dask])")

@@ -95,7 +95,7 @@ def sample_pairs(pair_list, n: int = SAMPLE_PAIRS) -> list:
 
 
 def collection_band(views, store: FeatureStore, pair_list, search: SearchConfig, rule: AcceptRule,
-                    options: AutoTol, sample: int = SAMPLE_PAIRS) -> CollectionBand:
+                    options: AutoTol, sample: int = SAMPLE_PAIRS, imap=map) -> CollectionBand:
     """The collection's band (module docstring) on checked inputs.
 
     Parameters
@@ -111,36 +111,50 @@ def collection_band(views, store: FeatureStore, pair_list, search: SearchConfig,
     rule : AcceptRule
         The padding of the strict rule is at least this rule's.
     options : AutoTol
+    imap : callable, optional
+        ``imap(fn, items)`` runs the larger sampled pairs (the general path), for example
+        :meth:`.runner.Runner.imap`; the small ones are matched here, in one compiled call.
     """
     strict = strict_rule(options, rule)
     largest = max((v.image_size for v in views), key=lambda s: s[0] * s[1])
-    residuals, used = [], 0
-    small_ones = []  # (inputs, geometry, wide search, view 2's depth range) of the pairs matched together
-    for i, j in sample_pairs(pair_list, sample):
+    small_ones, large_ones = [], []  # (sample number, inputs, geometry, wide search, view 2's depth range)
+    for k, (i, j) in enumerate(sample_pairs(pair_list, sample)):
         inputs, g, _, _ = pair_inputs(views[i], views[j], store)
         inputs = _queries(inputs, spread_subset(inputs.points1, MAX_QUERIES))
         wide = search.replace(tol=options.first_band(views[j].image_size), depth_range=views[i].depth_range)
         if small.fits(len(inputs.points1), len(inputs.points2), wide, strict, g):
-            small_ones.append((inputs, g, wide, views[j].depth_range))
-            continue
-        conf = guided.match(inputs, g, wide, strict)[0]
-        if len(conf):
-            residuals.append(segment_residuals(g, inputs.points1[conf[:, 0]], inputs.points2[conf[:, 1]]))
-            used += 1
+            small_ones.append((k, inputs, g, wide, views[j].depth_range))
+        else:
+            large_ones.append((k, views[i], views[j], store, wide, strict))
+    found = dict(imap(_confident, large_ones))
     # the small pairs in one call on every core, the same matches as guided.match (the reverse test unused)
-    found = small.many([small.SmallPair(x.points1, x.distances.a, x.points2, x.distances.b, g, s.tol, s.depth_range,
-                                        d2) for x, g, s, d2 in small_ones], strict, strict.ratio, store.norm,
+    pairs = small.many([small.SmallPair(x.points1, x.distances.a, x.points2, x.distances.b, g, s.tol, s.depth_range,
+                                        d2) for _, x, g, s, d2 in small_ones], strict, strict.ratio, store.norm,
                        lambda n2, n_pad: guided.padding_references(0, n2, n_pad))
-    for (x, g, _, _), (qi, kj, _, _) in zip(small_ones, found):
-        if len(qi):
-            residuals.append(segment_residuals(g, x.points1[qi], x.points2[kj]))
-            used += 1
+    for (k, x, g, _, _), (qi, kj, _, _) in zip(small_ones, pairs):
+        found[k] = _residuals(g, x.points1[qi], x.points2[kj])
+    residuals = [found[k] for k in sorted(found) if len(found[k])]
+    used = len(residuals)
     r = np.concatenate(residuals) if residuals else np.zeros(0)
     fallback = len(r) < options.min_matches
     sigma = float("nan") if fallback else robust_sigma(r)
     tol = clip_tol(sigma, options, largest)
     tau = tol if fallback else float(min(max(options.k * sigma, TAU_MIN), tol))
     return CollectionBand(tol, sigma, int(len(r)), used, fallback, tau)
+
+
+def _confident(item) -> tuple:
+    """``(sample number, signed distances to their segments)`` of the confident matches of one sampled
+    pair on the general path (a task for the runner's workers)."""
+    k, view1, view2, store, wide, strict = item
+    inputs, g, _, _ = pair_inputs(view1, view2, store)
+    inputs = _queries(inputs, spread_subset(inputs.points1, MAX_QUERIES))
+    conf = guided.match(inputs, g, wide, strict)[0]
+    return k, _residuals(g, inputs.points1[conf[:, 0]], inputs.points2[conf[:, 1]])
+
+
+def _residuals(g, points1: np.ndarray, points2: np.ndarray) -> np.ndarray:
+    return segment_residuals(g, points1, points2) if len(points1) else np.zeros(0)
 
 
 def _queries(inputs: guided.MatchInputs, rows: np.ndarray) -> guided.MatchInputs:

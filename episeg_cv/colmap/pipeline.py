@@ -30,6 +30,7 @@ from .. import __version__
 from .._validation import as_positive_int
 from ..features import PRESETS, FeatureConfig
 from ..interrupts import terminate_as_interrupt
+from ..matching import small
 from ..matching.config import AcceptRule, AutoTol, SearchConfig, resolve
 from .band import collection_band, sample_pairs
 from .consensus import TrackConsensus, verify_tracks
@@ -209,7 +210,7 @@ def _resolve_depth(views, rec, depth_range, warn):
 
 def match_model(model, image_dir, database, *, pairs=None, neighbors=None,
                 features: FeatureConfig | str = "collection", depth_range="auto", search: SearchConfig | None = None,
-                rule: AcceptRule | None = None, verify: str | TrackConsensus = "tracks", workers: int = 1,
+                rule: AcceptRule | None = None, verify: str | TrackConsensus = "tracks", workers: int | None = None,
                 scheduler: str | None = None, cache_dir=None, resume: bool = False, overwrite: bool = False,
                 progress=None, log=None, **options) -> MatchReport:
     """Match every pair of a posed collection on its epipolar segments; write a COLMAP database.
@@ -267,9 +268,13 @@ def match_model(model, image_dir, database, *, pairs=None, neighbors=None,
         come back.
     **options
         Fields of ``search`` or ``rule`` as keywords (``tol=4``, ``ratio=0.8``).
-    workers : int, optional
-        Threads for features and pairs (1: none). The compiled kernels and
-        OpenCV release the GIL, so the threads run in parallel.
+    workers : int or None, optional
+        Cores to use (None, the default: every core this process may run on,
+        :func:`~episeg_cv.colmap.runner.available_cores`; 1: one core for
+        everything). With N > 1, the features and the larger pairs run on a
+        pool of N threads, one pair per thread (the compiled kernels and OpenCV
+        release the GIL), and the small pairs, the band and the track consensus
+        on N kernel threads of this one. Like COLMAP's ``num_threads``.
     scheduler : str, optional
         A Dask scheduler address (``tcp://host:8786``: workers started with
         ``dask worker``), or ``"local:N"`` for a new ``LocalCluster`` of N
@@ -318,7 +323,7 @@ def match_model(model, image_dir, database, *, pairs=None, neighbors=None,
     if consensus is not None and consensus.loose <= rule.ratio:
         raise ValueError(f"the track consensus's loose ratio ({consensus.loose}) must be above the pair rule's "
                          f"ratio ({rule.ratio}); use verify='pairs' for the pair rule alone")
-    workers = as_positive_int(workers, "workers")
+    workers = None if workers is None else as_positive_int(workers, "workers")
     image_dir = Path(image_dir)
     if image_dir.exists() and not image_dir.is_dir():
         raise ValueError(f"image folder {str(image_dir)!r} is a file, expected the folder of the images")
@@ -366,7 +371,8 @@ def match_model(model, image_dir, database, *, pairs=None, neighbors=None,
         runner = Runner(workers, scheduler)
         report.runner = runner.describe
         try:
-            run(runner)
+            with runner.limits():
+                run(runner)
         finally:
             runner.close()
     return report
@@ -391,6 +397,7 @@ class _Run:
     tick: object
     warn: object
     from_database: bool
+    keypoints: dict = field(default_factory=dict)  # name -> stored keypoints, from the features step
 
     def __call__(self, runner: Runner) -> None:
         if self.from_database:  # the features are in the database: hold it from the first read
@@ -414,6 +421,7 @@ class _Run:
         digests = {}
         for name, (n, digest) in imap(_ensure_features, [(self.store, v) for v in self.views]):
             digests[name] = digest
+            self.keypoints[name] = n
             self.tick("features", len(digests), len(self.views))
         self.report.seconds_features = time.perf_counter() - t0
         return {"settings": self.settings, "images": digests, "episeg_cv": __version__}
@@ -425,10 +433,17 @@ class _Run:
                         loose=loose) for k, (i, j) in enumerate(pair_list)]
 
     def _results(self, runner, jobs):
-        # a few consecutive pairs per task: less scheduling and pickling, and they share images
-        size = runner.chunk(len(jobs))
-        chunks = (jobs[k:k + size] for k in range(0, len(jobs), size))
-        return (r for chunk in runner.imap(_match_chunk, chunks) for r in chunk)
+        """Every job's result, in no particular order. The small pairs (:func:`~episeg_cv.matching.small.fits`)
+        first, in this thread, many in one compiled call on the runner's cores; then the others on the
+        runner's workers. A few consecutive pairs per task: less scheduling and pickling, and they share
+        images."""
+        n = self.keypoints
+        tiny = [small.fits(n[j.view1.name], n[j.view2.name], j.search, j.rule) for j in jobs]
+        for inline in (True, False):
+            part = [j for j, t in zip(jobs, tiny) if t == inline]
+            size = runner.chunk(len(part), inline)
+            chunks = (part[k:k + size] for k in range(0, len(part), size))
+            yield from (r for chunk in runner.imap(_match_chunk, chunks, inline) for r in chunk)
 
     def _match(self, runner, record, resume) -> None:
         pycolmap = require_pycolmap()
@@ -436,7 +451,8 @@ class _Run:
         done = check_resumable(self.path, views, record, self.pair_list) if resume else set()
         t0 = time.perf_counter()
         if self.search.auto is not None:  # one band for every pair, found before any is matched
-            band = collection_band(views, self.store, self.pair_list, self.search, self.rule, self.search.auto)
+            band = collection_band(views, self.store, self.pair_list, self.search, self.rule, self.search.auto,
+                                   imap=runner.imap)
             report.band = band.as_dict()
             self.search = self.search.replace(tol=band.tol)
             if self.consensus is not None and self.consensus.tau is None:

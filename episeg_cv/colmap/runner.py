@@ -1,11 +1,15 @@
 """Run jobs in this process, in a pool of threads, or on a Dask cluster (it knows nothing of COLMAP).
 
-- ``workers=N``: N threads of this process. The matching kernels are compiled
-  with ``nogil`` and OpenCV releases the GIL while it detects, so the threads
-  run at the same time; they share the loaded kernels and the features in
-  memory, start in microseconds, and end with the process. Each worker's
-  kernels run on one thread (:func:`episeg_cv.threads.limit_this_thread`):
-  the cores are shared out by pairs.
+- ``workers=N``: N cores of this process (default: every core it may run on,
+  :func:`available_cores`). With N > 1, a pool of N threads: the matching
+  kernels are compiled with ``nogil`` and OpenCV releases the GIL while it
+  detects, so the threads run at the same time; they share the loaded kernels
+  and the features in memory, and end with the process. Each pool thread's
+  kernels run on one thread (:func:`episeg_cv.threads.limit_this_thread`): the
+  cores are shared out by items. Items the caller marks ``inline`` run in the
+  calling thread instead, their kernels on the N cores (many tiny items in one
+  parallel call beat a pool, whose threads hand the GIL over every few
+  milliseconds). With N = 1 everything runs in the calling thread on one core.
 - ``scheduler="local:N"``: a new ``distributed.LocalCluster`` of N worker
   processes (one thread each). A worker plugin (:class:`._dask.WarmWorker`) prepares
   every worker once, when it starts: one thread for OpenCV and BLAS, the
@@ -29,10 +33,12 @@ import threading
 import time
 
 import cv2
+import numba
 
-from ..threads import limit_this_thread
+from ..threads import limit_this_thread, limited
 
-__all__ = ["Runner", "CONNECT_TIMEOUT", "warm_up", "single_thread", "watch_parent", "undo_malloc_trim"]
+__all__ = ["Runner", "CONNECT_TIMEOUT", "available_cores", "warm_up", "single_thread", "watch_parent",
+           "undo_malloc_trim"]
 
 #: Seconds to wait for a Dask scheduler before giving up.
 CONNECT_TIMEOUT = 10.0
@@ -47,6 +53,21 @@ PROCESS_CHUNK, THREAD_CHUNK = 64, 32
 DASK_CHUNK_MIN, DASK_CHUNK_MAX = 8, 64
 
 _WORKER_LIMITED = False
+
+
+def available_cores() -> int:
+    """The cores this process may run on (its CPU affinity), at most numba's thread count: the default ``workers``.
+
+    Examples
+    --------
+    >>> available_cores() >= 1
+    True
+    """
+    try:
+        n = len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        n = os.cpu_count() or 1
+    return max(1, min(n, numba.config.NUMBA_NUM_THREADS))
 
 
 def single_thread():
@@ -145,11 +166,15 @@ def _run_in_worker(fn, item):
 class Runner:
     """Run ``fn`` over items with at most ``window`` in flight; yields results as they finish.
 
+    ``workers``: the cores of this process to use (None: :func:`available_cores`); with a
+    ``scheduler``, the cores of this process for the caller's own work (``cores``).
     :meth:`chunk` is the number of pairs the caller should put in one task for this runner.
+    :meth:`limits` caps the kernels of the calling thread at ``cores`` while it is open.
     """
 
-    def __init__(self, workers: int = 1, scheduler: str | None = None):
+    def __init__(self, workers: int | None = None, scheduler: str | None = None):
         self._pool = self._client = self._cluster = None
+        self.cores = available_cores() if workers is None else int(workers)
         self._tornado_level = None
         if scheduler is not None:
             try:
@@ -190,22 +215,26 @@ class Runner:
             tornado_log.setLevel(logging.CRITICAL)
             self._workers = max(1, len(self._client.scheduler_info().get("workers", {})))
             self.window = 4 * self._workers
-        elif workers > 1:
+        elif self.cores > 1:
             # one kernel thread per worker: the pairs are spread over the cores, not each pair's queries
             # (on 24 views, 2 workers ran at 0.94x of one when every pair also forked kernel threads)
-            self._pool = cf.ThreadPoolExecutor(workers, thread_name_prefix="episeg-worker",
+            self._pool = cf.ThreadPoolExecutor(self.cores, thread_name_prefix="episeg-worker",
                                                initializer=limit_this_thread, initargs=(1,))
-            self.describe = f"{workers} threads"
-            self.window = 4 * workers
+            self.describe = f"{self.cores} threads"
+            self.window = 4 * self.cores
         else:
-            self.describe = "this process"
+            self.describe = "this process, one core"
             self.window = 1
 
-    def chunk(self, n_items: int) -> int:
+    def limits(self):
+        """A context capping the compiled kernels called from this thread at :attr:`cores` threads."""
+        return limited(self.cores)
+
+    def chunk(self, n_items: int, inline: bool = False) -> int:
         """Items per task for ``n_items`` items.
 
-        In this process: :data:`PROCESS_CHUNK` (a task's small pairs are one compiled call on every
-        core, :func:`~.job.match_pairs`). Threads: :data:`THREAD_CHUNK`. Dask: about
+        In this process (one core, or ``inline``): :data:`PROCESS_CHUNK` (a task's small pairs are one
+        compiled call on every core, :func:`~.job.match_pairs`). Threads: :data:`THREAD_CHUNK`. Dask: about
         :data:`TASKS_PER_WORKER` tasks per worker, within ``[DASK_CHUNK_MIN, DASK_CHUNK_MAX]``:
         each task costs the scheduler and the driver's event loop a few milliseconds of Python, which
         took CPU from the workers (on 276 pairs and 2 workers, 8 pairs a task ran at 0.9x of 24-70).
@@ -213,11 +242,13 @@ class Runner:
         if self._client is not None:
             per = -(-n_items // (TASKS_PER_WORKER * self._workers))
             return int(min(max(per, DASK_CHUNK_MIN), DASK_CHUNK_MAX))
-        return THREAD_CHUNK if self._pool is not None else PROCESS_CHUNK
+        return THREAD_CHUNK if self._pool is not None and not inline else PROCESS_CHUNK
 
-    def imap(self, fn, items):
+    def imap(self, fn, items, inline: bool = False):
+        """``fn(item)`` for each item, yielded as they finish. ``inline``: in the calling thread (whose
+        kernels the caller caps at :attr:`cores` with :meth:`limits`), unless a Dask cluster runs the items."""
         items = iter(items)
-        if self._client is None and self._pool is None:
+        if self._client is None and (self._pool is None or inline):
             yield from map(fn, items)
             return
         if self._client is not None:

@@ -40,7 +40,7 @@ def folder(collection, tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def reference(folder, tmp_path_factory):
-    """One full run with the defaults (segment, depth_range auto, track consensus, 1 worker)."""
+    """One full run with the defaults (segment, depth_range auto, track consensus, every core)."""
     db = tmp_path_factory.mktemp("ref") / "ref.db"
     report = colmap.match_model(folder["model"], folder["images"], db)
     return db, report, colmap.read_database_matches(db)
@@ -277,6 +277,15 @@ def test_two_workers_give_identical_matches(folder, reference, tmp_path):
                                 cache_dir=tmp_path / "cache")
     assert report.runner == "2 threads"
     _same(colmap.read_database_matches(tmp_path / "w2.db"), reference[2])
+
+
+def test_one_worker_is_one_core_and_the_default_every_core(folder, reference, tmp_path):
+    cores = runner_module.available_cores()
+    assert reference[1].runner == (f"{cores} threads" if cores > 1 else "this process, one core")
+    report = colmap.match_model(folder["model"], folder["images"], tmp_path / "w1.db", workers=1,
+                                cache_dir=tmp_path / "cache")
+    assert report.runner == "this process, one core"
+    _same(colmap.read_database_matches(tmp_path / "w1.db"), reference[2])
 
 
 def test_local_dask_cluster_gives_identical_matches(folder, reference, tmp_path):

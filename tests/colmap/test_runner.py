@@ -1,14 +1,17 @@
-"""The runner (:mod:`episeg_cv.colmap.runner`): task sizes, and the Dask workers' memory allocator."""
+"""The runner (:mod:`episeg_cv.colmap.runner`): cores, task sizes, and the Dask workers' memory allocator."""
 
 import os
 import subprocess
 import sys
+import threading
 
+import numba
 import pytest
 
+import episeg_cv
 from episeg_cv.colmap import runner as runner_module
 from episeg_cv.colmap.runner import (DASK_CHUNK_MAX, DASK_CHUNK_MIN, PROCESS_CHUNK, TASKS_PER_WORKER, THREAD_CHUNK,
-                                     Runner)
+                                     Runner, available_cores)
 
 
 def test_task_sizes_in_this_process_and_threads():
@@ -16,8 +19,49 @@ def test_task_sizes_in_this_process_and_threads():
     pool = Runner(2)
     try:
         assert pool.chunk(276) == THREAD_CHUNK and pool.chunk(1) == THREAD_CHUNK
+        assert pool.chunk(276, inline=True) == PROCESS_CHUNK  # inline: one parallel call in this thread
     finally:
         pool.close()
+
+
+def test_workers_are_cores_and_every_core_by_default():
+    cores = available_cores()
+    assert 1 <= cores <= numba.config.NUMBA_NUM_THREADS
+    if hasattr(os, "sched_getaffinity"):
+        assert cores == min(len(os.sched_getaffinity(0)), numba.config.NUMBA_NUM_THREADS)
+    default = Runner()
+    try:
+        assert default.cores == cores
+        assert default.describe == (f"{cores} threads" if cores > 1 else "this process, one core")
+    finally:
+        default.close()
+
+
+def _seen(_):
+    return threading.current_thread().name, episeg_cv.get_num_threads()
+
+
+def test_one_worker_runs_everything_on_one_core_in_this_thread():
+    runner = Runner(1)
+    assert runner.describe == "this process, one core"
+    with runner.limits():
+        assert episeg_cv.get_num_threads() == 1  # the caller's own kernels too (band, consensus)
+        seen = set(runner.imap(_seen, range(5)))
+    assert seen == {(threading.current_thread().name, 1)}
+    assert episeg_cv.get_num_threads() == numba.get_num_threads()  # the cap is put back
+
+
+def test_inline_items_run_in_this_thread_and_the_others_on_the_pool():
+    runner = Runner(2)
+    try:
+        with runner.limits():
+            inline = set(runner.imap(_seen, range(5), inline=True))
+            pooled = set(runner.imap(_seen, range(8)))
+    finally:
+        runner.close()
+    me = threading.current_thread().name
+    assert inline == {(me, min(2, numba.get_num_threads()))}  # this thread, its kernels on the runner's cores
+    assert {t for t, _ in pooled} <= {f"episeg-worker_{k}" for k in range(2)} and {n for _, n in pooled} == {1}
 
 
 @pytest.mark.parametrize("n_items, workers, want", [
