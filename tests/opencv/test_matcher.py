@@ -439,6 +439,25 @@ def test_knn_lists_shorter_than_k(k):
     np.testing.assert_array_equal(res.counts, [1, 2, 0])
 
 
+def test_knn_lists_leave_the_garbage_collector_as_they_found_it():
+    """The per-query lists are made with the cyclic collector paused: it must come back on, and stay off
+    when the program had turned it off."""
+    import gc
+
+    g, kp1, kp2, d1, d2 = small_problem()
+    matcher = SegmentMatcher(g)
+    assert gc.isenabled()
+    first = matcher.knnMatch(d1, d2, kp1, kp2, 2)
+    assert gc.isenabled()
+    gc.disable()
+    try:
+        assert [[(m.queryIdx, m.trainIdx) for m in r] for r in matcher.knnMatch(d1, d2, kp1, kp2, 2)] == \
+            [[(m.queryIdx, m.trainIdx) for m in r] for r in first]
+        assert not gc.isenabled()
+    finally:
+        gc.enable()
+
+
 def test_huge_k_costs_no_memory():
     """knnMatch(k=10**9) must not allocate N1 x k: the lists are as long as the candidates."""
     g, kp1, kp2, d1, d2 = small_problem()
