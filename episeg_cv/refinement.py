@@ -11,9 +11,11 @@ rotation and translation trade off).
 Model: ``R = expm([w]_x) R0`` (a left perturbation, ``w`` in camera 2's frame)
 and ``t = |t0| normalise(u0 + B beta)`` with ``u0 = t0 / |t0|`` and ``B`` a
 basis of its tangent plane (``|t|`` is kept: the depths of a depth range stay
-in its unit). The cost is ``sum rho_c(r_i) + p^T P^-1 p / 2`` with ``rho_c``
-the Cauchy loss, ``p = (w, beta)`` and ``P`` the prior covariance (isotropic,
-``prior_deg``, or the geometry's pose covariance). ``c`` is annealed from
+in its unit). The cost is ``sum rho_c(r_i) / sigma^2 + p^T P^-1 p / 2`` with
+``rho_c`` the Cauchy loss, ``sigma`` the robust scale of the residuals (at
+least 0.1 px; re-estimated at each stage), ``p = (w, beta)`` and ``P`` the
+prior covariance (isotropic, ``prior_deg``, or the geometry's pose
+covariance): a maximum a posteriori estimate. ``c`` is annealed from
 twice the median residual down to ``max(1 px, 2.5 sigma)`` (graduated
 non-convexity), with two damped Gauss-Newton (Levenberg-Marquardt) steps per
 stage and the analytic Jacobian of the line distance (past an end of its
@@ -36,6 +38,9 @@ __all__ = ["PoseRefinement", "refine_pose", "segment_residuals", "robust_sigma",
 RESIDUAL_MARGIN = 1e3
 #: Residual added for a match whose segment is empty (the ray is behind camera 2).
 EMPTY_PENALTY = 1e3
+#: Smallest noise scale (pixels) the residuals are weighed with against the prior (keypoints are not
+#: located better than a tenth of a pixel).
+MIN_SIGMA = 0.1
 
 
 @dataclass(frozen=True, eq=False)
@@ -56,6 +61,12 @@ class PoseRefinement:
         Angle of ``R R0^T`` and between the directions of ``t`` and ``t0``, degrees.
     iterations : int
         Gauss-Newton steps taken.
+    covariance : (6, 6) float64
+        Posterior covariance of the refined pose (Laplace approximation, in the
+        convention of :meth:`TwoViewGeometry.with_covariance`): ``(J^T J / sigma^2
+        + P^-1)^-1`` over the inliers, in the refined pose's frame; the variance of
+        ``|t|``, which the matches do not see, is the prior's. With fewer than 8
+        matches (or no ``sigma``), the prior.
     """
 
     geometry: TwoViewGeometry
@@ -65,6 +76,7 @@ class PoseRefinement:
     rotation_change_deg: float
     translation_change_deg: float
     iterations: int
+    covariance: np.ndarray
 
 
 def _skew(v: np.ndarray) -> np.ndarray:
@@ -226,21 +238,62 @@ class _Problem:
         return J
 
 
-def _prior_precision(problem: _Problem, prior_deg: float, covariance) -> np.ndarray:
-    """``P^-1`` of the parameters ``p``: isotropic ``prior_deg``, or the pose covariance mapped onto ``p``."""
+def _prior_covariance(problem: _Problem, prior_deg: float, covariance) -> np.ndarray:
+    """The ``6 x 6`` prior of the pose: the geometry's covariance, or isotropic ``prior_deg`` for the rotation
+    and the direction of ``t`` (``|t|`` known)."""
+    if covariance is not None:
+        return np.asarray(covariance, dtype=np.float64)
+    a = np.deg2rad(prior_deg) ** 2
+    C = np.zeros((6, 6))
+    C[:3, :3] = a * np.eye(3)
+    if problem.has_t:
+        C[3:, 3:] = problem.norm_t**2 * a * (np.eye(3) - np.outer(problem.u0, problem.u0))
+    return C
+
+
+def _prior_precision(problem: _Problem, prior: np.ndarray) -> np.ndarray:
+    """``P^-1`` of the parameters ``p`` for the ``6 x 6`` prior of the pose."""
     n = problem.n_par
-    if covariance is None:
-        return np.eye(n) / np.deg2rad(prior_deg) ** 2
     G = np.zeros((n, 6))
     G[:3, :3] = np.eye(3)
     if problem.has_t:  # beta = B^T dt / |t| to first order
         G[3:, 3:] = problem.B.T / problem.norm_t
-    P = G @ covariance @ G.T
+    P = G @ prior @ G.T
     return np.linalg.inv(P + np.eye(n) * 1e-12 + np.diag(np.diag(P)) * 1e-9)
 
 
-def _cost(r, c, p, prec):
-    return 0.5 * c * c * float(np.sum(np.log1p((r / c) ** 2))) + 0.5 * float(p @ prec @ p)
+def _posterior(pb: _Problem, p: np.ndarray, r: np.ndarray, inliers: np.ndarray, sigma: float, prec: np.ndarray,
+               prior: np.ndarray) -> np.ndarray:
+    """The ``6 x 6`` Laplace posterior at ``p``: ``(J^T J / sigma^2 + P^-1)^-1`` over the inliers, mapped to a
+    left perturbation of the refined ``R`` and ``dt``; the variance of ``|t|`` (not refined) is the prior's."""
+    if not np.isfinite(sigma) or sigma <= 0 or inliers.sum() < 8:
+        return prior.copy()
+    J = pb.jacobian(p, r)[inliers]
+    cov_p = np.linalg.inv(J.T @ J / sigma**2 + prec)
+    G = np.zeros((6, pb.n_par))
+    G[:3, :3] = _left_jacobian(p[:3])
+    out = np.zeros((6, 6))
+    if pb.has_t:
+        v = pb.u0 + pb.B @ p[3:]
+        nv = float(np.linalg.norm(v))
+        G[3:, 3:] = pb.norm_t * (np.eye(3) - np.outer(v, v) / nv**2) @ pb.B / nv
+        u = v / nv
+        out[3:, 3:] = float(pb.u0 @ prior[3:, 3:] @ pb.u0) * np.outer(u, u)
+    else:  # t = 0 is not refined: its prior stays
+        out[3:, 3:] = prior[3:, 3:]
+    out += G @ cov_p @ G.T
+    return 0.5 * (out + out.T)
+
+
+def _cost(r, c, s2, p, prec):
+    return 0.5 * c * c / s2 * float(np.sum(np.log1p((r / c) ** 2))) + 0.5 * float(p @ prec @ p)
+
+
+def _scale2(r: np.ndarray) -> float:
+    """The squared noise scale that weighs the residuals against the prior: the robust sigma of ``r``,
+    at least :data:`MIN_SIGMA`."""
+    s = robust_sigma(r)
+    return max(s if np.isfinite(s) else 1.0, MIN_SIGMA) ** 2
 
 
 def refine_pose(geometry, points1, points2, *, prior_deg: float = 10.0, use_covariance: bool = True,
@@ -305,24 +358,26 @@ def refine(geometry: TwoViewGeometry, x1: np.ndarray, x2: np.ndarray, *, prior_d
     pb = _Problem(geometry, x1, x2)
     p = np.zeros(pb.n_par)
     r = pb.residuals(p)
+    prior = _prior_covariance(pb, prior_deg, covariance)
+    prec = _prior_precision(pb, prior)
     if len(r) < 8:
-        return _result(pb, p, r, 0)
-    prec = _prior_precision(pb, prior_deg, covariance)
+        return _result(pb, p, r, 0, prec, prior)
     c = max(2.0 * float(np.median(np.abs(r))), min_scale)
     mu, steps = 1e-3, 0
     for stage in range(stages):
+        s2 = _scale2(r)
         for _ in range(iterations):
             steps += 1
-            w = 1.0 / (1.0 + (r / c) ** 2)
+            w = 1.0 / (1.0 + (r / c) ** 2) / s2
             J = pb.jacobian(p, r)
             Jw = J * w[:, None]
             A = Jw.T @ J + prec
             grad = Jw.T @ r + prec @ p
-            cost0 = _cost(r, c, p, prec)
+            cost0 = _cost(r, c, s2, p, prec)
             for _ in range(8):
                 step = -np.linalg.solve(A + mu * np.diag(np.diag(A)), grad)
                 r_new = pb.residuals(p + step)
-                if _cost(r_new, c, p + step, prec) <= cost0:
+                if _cost(r_new, c, s2, p + step, prec) <= cost0:
                     p, r = p + step, r_new
                     mu = max(mu / 3, 1e-7)
                     break
@@ -333,10 +388,11 @@ def refine(geometry: TwoViewGeometry, x1: np.ndarray, x2: np.ndarray, *, prior_d
         if c_next >= c and stage > 0:
             break
         c = c_next
-    return _result(pb, p, r, steps)
+    return _result(pb, p, r, steps, prec, prior)
 
 
-def _result(pb: _Problem, p: np.ndarray, r: np.ndarray, steps: int) -> PoseRefinement:
+def _result(pb: _Problem, p: np.ndarray, r: np.ndarray, steps: int, prec: np.ndarray,
+            prior: np.ndarray) -> PoseRefinement:
     g = pb.geometry(p) if np.any(p) else pb.g0
     if g is pb.g0 and g.covariance is not None:
         g = g.with_covariance(None)
@@ -348,4 +404,5 @@ def _result(pb: _Problem, p: np.ndarray, r: np.ndarray, steps: int) -> PoseRefin
     t_change = 0.0
     if pb.has_t:
         t_change = float(np.degrees(np.arccos(np.clip(pb.u0 @ g.t / pb.norm_t, -1.0, 1.0))))
-    return PoseRefinement(g, r, sigma, inliers, rotation_angle_deg(g.R @ pb.R0.T), t_change, steps)
+    cov = _posterior(pb, p, r, inliers, sigma, prec, prior) if len(r) >= 8 else prior.copy()
+    return PoseRefinement(g, r, sigma, inliers, rotation_angle_deg(g.R @ pb.R0.T), t_change, steps, cov)

@@ -2,8 +2,9 @@
 
 It walks the slices a :class:`~.candidates.CandidateIndex` lists (its public
 ``q_sorted``, ``q_start``, ``q_stop`` and ``t_sorted``), tests each keypoint
-against the query's band (trapezoid and elliptical caps, in float64, in the
-order written) and, inside, scores the descriptors and merges the result into
+against the query's band (the half-width ``w(f)`` along the segment and
+elliptical caps, :mod:`episeg_cv.uncertainty`; in float64, in the order
+written) and, inside, scores the descriptors and merges the result into
 the arrays it is given: the ``k`` best candidates of each query (ties: the
 smaller keypoint index), the best query of each keypoint (ties: the smaller
 query index) and the counts. The arrays accumulate across calls, so one call
@@ -47,7 +48,7 @@ def _score(A, q, B, t, norm):
 
 @nb.njit(cache=True, inline="always")
 def _inside(band, g, y0, y1):
-    """``band[g] = (P0, P1, m0, m1, L, ws, we, es, ee)``: is ``(y0, y1)`` in the band?"""
+    """``band[g] = (P0, P1, m0, m1, L, ws, we, es, ee, wc)``: is ``(y0, y1)`` in the band?"""
     r0 = y0 - band[g, 0]
     r1 = y1 - band[g, 1]
     u = r0 * band[g, 2] + r1 * band[g, 3]
@@ -61,7 +62,7 @@ def _inside(band, g, y0, y1):
         ee = band[g, 8]
         return (a / we) ** 2 + ((u - L) / ee) ** 2 <= 1.0 + 1e-12 if we > 0 and ee > 0 else False
     f = u / L if L > 0 else 0.0
-    return a <= ws + (we - ws) * f
+    return a * a <= (1.0 - f) * (1.0 - f) * ws * ws + 2.0 * f * (1.0 - f) * band[g, 9] + f * f * we * we
 
 
 @nb.njit(cache=True, nogil=True)
@@ -70,7 +71,7 @@ def band_scan(q_sorted, q_start, q_stop, t_sorted, queries, y, band, A, B, norm,
 
     ``queries[q]`` is the global index of the index's query ``q``; ``y (N2, 2)``
     and ``B (N2, D)`` are the keypoints and their descriptors in their own
-    order; ``band (N1, 9)`` the bands of the global queries. ``idx, sc (N1, k)``,
+    order; ``band (N1, 10)`` the bands of the global queries. ``idx, sc (N1, k)``,
     ``counts (N1,)``, ``col_s, col_i (N2,)`` are updated in place (``sc``,
     ``col_s`` start at inf, ``idx``, ``col_i`` at -1).
     """

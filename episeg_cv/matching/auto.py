@@ -25,6 +25,12 @@ On exact poses the given pose is kept and the band is 2 px: the result is
 the fixed default's. A geometry with no calibrated pose (an oriented
 fundamental matrix) gets step 4 only; a geometry with a pose covariance uses
 it as the prior of step 2 (and matches without it: the estimate replaces it).
+
+With a covariance and a numeric ``tol``, :func:`plan` matches in the bands of
+the posterior (:func:`posterior`, :mod:`episeg_cv.uncertainty`): steps 1 and
+2 with the bands of the covariance as the first pass and the covariance as
+the prior, no step 3 (the prior already weighs the given pose), and the
+posterior covariance instead of step 4.
 """
 
 from __future__ import annotations
@@ -37,14 +43,14 @@ import numpy as np
 from .._validation import as_positive_int
 from ..geometry import EpipolarGeometry, TwoViewGeometry, as_geometry
 from ..refinement import PoseRefinement, refine, robust_sigma, segment_residuals, spread_subset
-from ..uncertainty import EpipolarBands
+from ..uncertainty import KAPPA, EpipolarBands
 from . import banded, guided
 from .config import AcceptRule, AutoTol, SearchConfig, resolve
 from .distances import Distances
 from .guided import MatchInputs
 
 __all__ = ["BandEstimate", "estimate_band", "estimate", "estimate_from_pairs", "unguided_mutual", "Plan", "plan",
-           "plan_pairs", "nearest", "match", "knn", "radius"]
+           "plan_pairs", "posterior", "nearest", "match", "knn", "radius"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -192,6 +198,26 @@ def estimate_from_pairs(pairs: np.ndarray, p1: np.ndarray, p2: np.ndarray, geome
                         ref.translation_change_deg, unguided)
 
 
+def _confident(inputs: MatchInputs, geometry: EpipolarGeometry, conf: np.ndarray, options: AutoTol):
+    """Step 1's fallback and step 2: the confident matches ``conf`` of a first pass, with plain mutual
+    nearest neighbours when they are too few or too few agree with the refined pose, and the refinement on
+    them: ``(conf, refinement or None, unguided)`` (None: uncalibrated, or fewer than ``min_matches``)."""
+    p1, p2 = inputs.points1, inputs.points2
+    unguided = options.unguided_pass is True or (options.unguided_pass == "auto" and len(conf) < options.min_support)
+    if unguided:
+        conf = _union(conf, unguided_mutual(inputs.distances, options.strict_ratio))
+    if not (options.refine and isinstance(geometry, TwoViewGeometry)) or len(conf) < options.min_matches:
+        return conf, None, unguided
+    ref = _refine(geometry, p1, p2, conf, options)
+    if not unguided and options.unguided_pass == "auto":
+        support = np.abs(segment_residuals(ref.geometry, p1[conf[:, 0]], p2[conf[:, 1]]))
+        if (support <= max(options.k * ref.sigma, options.tol_min)).sum() < options.min_support:
+            unguided = True
+            conf = _union(conf, unguided_mutual(inputs.distances, options.strict_ratio))
+            ref = _refine(geometry, p1, p2, conf, options)
+    return conf, ref, unguided
+
+
 def estimate(inputs: MatchInputs, geometry: EpipolarGeometry, search: SearchConfig, rule: AcceptRule,
              options: AutoTol, rng=0, bucket_size: int = 64) -> BandEstimate:
     """:func:`estimate_band` on checked inputs."""
@@ -201,19 +227,9 @@ def estimate(inputs: MatchInputs, geometry: EpipolarGeometry, search: SearchConf
     # the wide band even with a covariance: its bands as the first pass were measured no better (and
     # worse where the covariance understates the error)
     conf = guided.match(inputs, _plain(geometry), search.replace(tol=band), strict, rng, bucket_size)[0]
-    unguided = options.unguided_pass is True or (options.unguided_pass == "auto" and len(conf) < options.min_support)
-    if unguided:
-        conf = _union(conf, unguided_mutual(inputs.distances, options.strict_ratio))
-    calibrated = options.refine and isinstance(geometry, TwoViewGeometry)
-    if not calibrated or len(conf) < options.min_matches:
+    conf, ref, unguided = _confident(inputs, geometry, conf, options)
+    if ref is None:
         return estimate_from_pairs(conf, p1, p2, geometry, options, unguided)
-    ref = _refine(geometry, p1, p2, conf, options)
-    if not unguided and options.unguided_pass == "auto":
-        support = np.abs(segment_residuals(ref.geometry, p1[conf[:, 0]], p2[conf[:, 1]]))
-        if (support <= max(options.k * ref.sigma, options.tol_min)).sum() < options.min_support:
-            unguided = True
-            conf = _union(conf, unguided_mutual(inputs.distances, options.strict_ratio))
-            ref = _refine(geometry, p1, p2, conf, options)
     keep, sigma = _keep_given(geometry, ref, p1[conf[:, 0]], p2[conf[:, 1]], options)
     if not keep:  # a second strict pass around the refined pose: more confident matches, better spread
         lo, _ = options.bounds(geometry.image_size2)
@@ -228,6 +244,36 @@ def estimate(inputs: MatchInputs, geometry: EpipolarGeometry, search: SearchConf
         return BandEstimate(tol, sigma, _plain(geometry), True, conf, unguided=unguided)
     return BandEstimate(tol, sigma, ref.geometry, False, conf, ref.rotation_change_deg, ref.translation_change_deg,
                         unguided)
+
+
+def _noise(search: SearchConfig, ref: PoseRefinement) -> float:
+    """The keypoint-noise term of the posterior bands: ``search.tol``, or ``KAPPA`` robust sigmas of the
+    confident matches' distances to their lines when that is more (a model error the pose cannot absorb)."""
+    return max(search.tol, KAPPA * ref.sigma) if np.isfinite(ref.sigma) else search.tol
+
+
+def posterior(inputs: MatchInputs, geometry: TwoViewGeometry, search: SearchConfig, rule: AcceptRule,
+              options: AutoTol, rng=0, bucket_size: int = 64) -> tuple[TwoViewGeometry, float]:
+    """The pose covariance as a prior (module docstring of :mod:`episeg_cv.uncertainty`): ``(geometry, tol)``
+    to match with, the refined pose with its posterior covariance and the noise term of its bands.
+
+    Confident matches (the strict rule) in the bands of the prior, with the fallback of step 1; the pose
+    refined on them with the prior (step 2); a second strict pass in the bands of that posterior and a
+    second refinement. With fewer than ``options.min_matches`` confident matches, the given geometry.
+    """
+    p1, p2 = inputs.points1, inputs.points2
+    strict = strict_rule(options, rule)
+    conf = banded.match(inputs, geometry, banded.bands_for(geometry, p1, search), search, strict, rng,
+                        bucket_size)[0]
+    conf, ref, _ = _confident(inputs, geometry, conf, options)
+    if ref is None:
+        return geometry, search.tol
+    first = ref.geometry.with_covariance(ref.covariance)
+    s1 = search.replace(tol=_noise(search, ref))
+    conf = banded.match(inputs, first, banded.bands_for(first, p1, s1), s1, strict, rng, bucket_size)[0]
+    if len(conf) >= options.min_matches:
+        ref = _refine(geometry, p1, p2, conf, options)
+    return ref.geometry.with_covariance(ref.covariance), _noise(search, ref)
 
 
 def estimate_band(descriptors1, descriptors2, points1, points2, geometry, *, options: AutoTol | None = None,
@@ -320,6 +366,9 @@ def plan(inputs: MatchInputs, geometry: EpipolarGeometry, search: SearchConfig, 
         geometry, search = est.geometry, search.replace(tol=est.tol)
     bands = None
     if getattr(geometry, "covariance", None) is not None and search.constraint != "none":
+        if est is None:
+            geometry, tol = posterior(inputs, geometry, search, rule, AutoTol(), rng, bucket_size)
+            search = search.replace(tol=tol)
         bands = banded.bands_for(geometry, inputs.points1, search)
     return Plan(geometry, search, bands, est)
 

@@ -1,6 +1,7 @@
 """Guided matching where each query has its own band (a pose covariance, :mod:`episeg_cv.uncertainty`).
 
-The band of a query is a trapezoid around its segment with elliptical caps
+The band of a query is a half-width that varies along its segment (at most
+the trapezoid joining its ends' half-widths) with elliptical caps
 (:class:`~episeg_cv.uncertainty.EpipolarBands`), not the fixed ``tol``
 stadium the compiled scan tests. So the candidates are found in two steps:
 
@@ -42,13 +43,14 @@ def bands_for(geometry, points1: np.ndarray, search: SearchConfig) -> EpipolarBa
 
 
 def _table(bands: EpipolarBands) -> np.ndarray:
-    """``(N1, 9)`` per query: the start ``P``, the unit direction ``m``, the length ``L`` and the band's
-    ``w_start, w_end, e_start, e_end`` (the layout of :func:`._band_kernels.band_scan`)."""
+    """``(N1, 10)`` per query: the start ``P``, the unit direction ``m``, the length ``L`` and the band's
+    ``w_start, w_end, e_start, e_end`` and ``cross`` (the layout of :func:`._band_kernels.band_scan`)."""
     P = np.nan_to_num(bands.start)
     D = np.nan_to_num(bands.end) - P
     L = np.hypot(D[:, 0], D[:, 1])
     m = np.where((L > 0)[:, None], D / np.where(L > 0, L, 1.0)[:, None], np.array([1.0, 0.0]))
-    return np.ascontiguousarray(np.column_stack([P, m, L, bands.w_start, bands.w_end, bands.e_start, bands.e_end]))
+    return np.ascontiguousarray(np.column_stack([P, m, L, bands.w_start, bands.w_end, bands.e_start, bands.e_end,
+                                                 bands.cross]))
 
 
 def _indexes(geometry, bands: EpipolarBands, points1, points2, search: SearchConfig, bucket_size: int):

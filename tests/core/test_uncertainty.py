@@ -116,11 +116,9 @@ def test_quadrature_and_cap():
     assert capped.w_start[0] == 50.0 and capped.reach[0] == 50.0
 
 
-@settings(max_examples=8, deadline=None)
-@given(seed=st.integers(0, 10**6))
-def test_monte_carlo_the_true_match_stays_in_its_band(seed):
-    """Draw poses from the covariance: the true match of each query (a 3-D point seen by the true pose)
-    is inside the band of the nominal pose at least 98 % of the time (99 % by construction, first order)."""
+def _coverage(seed, kappa):
+    """Draw poses from the covariance: the fraction of true matches (3-D points seen by the drawn pose)
+    inside the band of the nominal pose."""
     rng = np.random.default_rng(seed)
     R0 = _rot(rng.normal(0, 0.2, 3))
     t0 = rng.normal(0, 1, 3)
@@ -130,7 +128,7 @@ def test_monte_carlo_the_true_match_stays_in_its_band(seed):
     n = 400
     x1 = rng.uniform([0, 0], [640, 480], (n, 2))
     z = rng.uniform(2, 30, n)
-    b = g.with_covariance(C).bands(x1, tol=0.0)
+    b = g.with_covariance(C).bands(x1, tol=0.0, kappa=kappa)
     val, vec = np.linalg.eigh(C)
     L = vec * np.sqrt(np.maximum(val, 0.0))
     inside, total = 0, 0
@@ -141,7 +139,54 @@ def test_monte_carlo_the_true_match_stays_in_its_band(seed):
         seen = (z2 > 0) & np.all((x2 > 0) & (x2 < [639, 479]), axis=1) & b.valid
         inside += int(b.contains(np.flatnonzero(seen), x2[seen]).sum())
         total += int(seen.sum())
-    assert total > 500 and inside >= 0.98 * total
+    assert total > 500
+    return inside / total
+
+
+@settings(max_examples=6, deadline=None)
+@given(seed=st.integers(0, 10**6))
+def test_monte_carlo_the_true_match_stays_in_its_band(seed):
+    """99 % by construction (first order): at least 97 % (measured 98.0-99.95 % over 60 seeds)."""
+    assert _coverage(seed, 2.576) >= 0.97
+
+
+def test_monte_carlo_the_band_is_calibrated_not_only_safe():
+    """At one standard deviation the band holds about 68 % of the true matches, as a Gaussian does (measured
+    0.63-0.68 a seed); the trapezoid joining the ends' half-widths held 0.69-0.84 (0.81 on average)."""
+    assert 0.62 < np.mean([_coverage(seed, 1.0) for seed in range(4)]) < 0.74
+
+
+def test_half_width_between_the_ends_by_hand():
+    """Ends 10 px wide whose displacements are anticorrelated: at the middle w^2 = (100 + 2 w_cross + 100) / 4."""
+    from episeg_cv.uncertainty import EpipolarBands
+    P, Q = np.array([[0.0, 0.0]]), np.array([[100.0, 0.0]])
+    ten, one = np.array([10.0]), np.array([1.0])
+    b = EpipolarBands(P, Q, np.array([True]), ten, ten, ten, ten, one, one, np.array([-96.0]))  # w(0.5) = sqrt(2)
+    assert b.contains([0, 0], [[50.0, 1.40], [50.0, -1.40]]).all()
+    assert not b.contains([0, 0], [[50.0, 1.43], [50.0, -1.43]]).any()
+    assert b.contains([0], [[0.0, 9.99]])[0] and not b.contains([0], [[0.0, 10.01]])[0]
+    w = np.sqrt(0.75**2 * 100 + 2 * 0.75 * 0.25 * -96 + 0.25**2 * 100)  # at a quarter: 6.80 px
+    assert b.contains([0], [[25.0, w - 0.01]])[0] and not b.contains([0], [[25.0, w + 0.01]])[0]
+    # without w_cross: the trapezoid (10 px all along here)
+    trap = EpipolarBands(P, Q, np.array([True]), ten, ten, ten, ten, one, one)
+    assert trap.contains([0], [[50.0, 9.99]])[0] and np.array_equal(trap.cross, [100.0])
+
+
+def test_a_pivoting_line_has_a_narrow_waist():
+    """A pose error that keeps one 3-D point fixed in camera 2 (a rotation dtheta with dt = -dtheta x X)
+    turns the line about that point's image: the band is tol wide there, wider at both ends."""
+    g = TwoViewGeometry(K, K, np.eye(3), [-1.0, 0, 0], **SIZE)
+    x1 = np.array([[320.0, 300.0]])
+    X = 5.0 * np.linalg.inv(K) @ np.array([320.0, 300.0, 1.0])
+    dtheta = np.array([1.0, 0.0, 0.0])  # about x: the horizontal line tilts
+    xi = np.concatenate([dtheta, np.cross(X, dtheta)])  # X2 + dX2 = (I + [dtheta]x) X + t + dt = X2
+    b = g.with_covariance(1e-6 * np.outer(xi, xi)).bands(x1, tol=1.0)
+    x2, _ = g.transfer(x1, 5.0)
+    u = (x2[0] - b.start[0]) @ (b.end[0] - b.start[0]) / np.sum((b.end[0] - b.start[0]) ** 2)
+    w2 = (1 - u) ** 2 * b.w_start[0] ** 2 + 2 * u * (1 - u) * b.w_cross[0] + u**2 * b.w_end[0] ** 2
+    assert np.sqrt(w2) == pytest.approx(1.0, abs=0.01)
+    assert (1 - u) * b.w_start[0] + u * b.w_end[0] > 2.3  # the trapezoid: 2.4 px there
+    assert b.contains([0], [x2[0] + [0, 0.99]])[0] and not b.contains([0], [x2[0] + [0, 1.05]])[0]
 
 
 @settings(max_examples=25, deadline=None)
@@ -209,3 +254,45 @@ def test_covariance_band_recovers_matches_of_a_wrong_pose(forward):
     assert not filter_pairs(banded, p1, p2, off).all()
     labels, counts = m.explain(m.match(d1, d2, kp1, kp2), kp1, kp2)
     assert counts["on_segment"] == len(banded)
+
+
+def _perturbed(g, rot_deg, t_deg, seed):
+    rng = np.random.default_rng(seed)
+    axis = rng.normal(size=3)
+    R = _rot(np.deg2rad(rot_deg) * axis / np.linalg.norm(axis)) @ g.R
+    u = g.t / np.linalg.norm(g.t)
+    d = rng.normal(size=3)
+    d -= (d @ u) * u
+    t = np.linalg.norm(g.t) * (np.cos(np.deg2rad(t_deg)) * u + np.sin(np.deg2rad(t_deg)) * d / np.linalg.norm(d))
+    return TwoViewGeometry(g.K1, g.K2, R, t, image_size1=g.image_size1, image_size2=g.image_size2)
+
+
+def test_matching_with_a_covariance_uses_its_posterior(forward):
+    """Off by (1 deg, 5 deg) with the true covariance of that error: the posterior pose is much nearer the
+    truth, and the bands of its posterior find at least what the best fixed band chosen in hindsight finds."""
+    from episeg_cv import AcceptRule, AutoTol, SearchConfig
+    from episeg_cv.matching import auto
+    from episeg_cv.matching.guided import MatchInputs
+    from episeg_cv.refinement import rotation_angle_deg
+    pair, d1, d2, p1, p2 = forward
+    gt = pair.ground_truth(p1, p2)
+    off = _perturbed(pair.geometry, 1.0, 5.0, seed=3)
+    prior = off.with_covariance(pose_covariance(off, 1.0, 5.0))
+    post, tol = auto.posterior(MatchInputs.check(d1, d2, p1, p2, "l2"), prior, SearchConfig(), AcceptRule(),
+                               AutoTol())
+    assert rotation_angle_deg(post.R @ pair.geometry.R.T) < 0.1 and tol == 2.0
+    assert np.all(np.sqrt(np.diag(post.covariance)[:3]) < 0.05 * np.sqrt(np.diag(prior.covariance)[:3]))
+    ours = gt.is_correct(match_descriptors(d1, d2, p1, p2, prior)[0])
+    fixed = [gt.is_correct(match_descriptors(d1, d2, p1, p2, off, tol=t)[0]).sum() for t in (2.0, 4.0, 8.0, 16.0)]
+    exact = gt.is_correct(match_descriptors(d1, d2, p1, p2, pair.geometry)[0])
+    assert ours.sum() >= max(fixed) and ours.sum() >= 0.97 * exact.sum() and ours.mean() >= exact.mean() - 0.01
+
+
+def test_with_too_few_confident_matches_the_prior_bands_are_used(forward):
+    from episeg_cv import AcceptRule, AutoTol, SearchConfig
+    from episeg_cv.matching import auto
+    from episeg_cv.matching.guided import MatchInputs
+    pair, d1, d2, p1, p2 = forward
+    prior = pair.geometry.with_covariance(pose_covariance(pair.geometry, 0.5, 2.5))
+    inputs = MatchInputs.check(d1[:8], d2[:8], p1[:8], p2[:8], "l2")
+    assert auto.posterior(inputs, prior, SearchConfig(tol=3.0), AcceptRule(), AutoTol()) == (prior, 3.0)
