@@ -33,7 +33,7 @@ import numpy as np
 from ._validation import as_camera_matrix, as_image_size, as_nonnegative, as_positive_int, as_ratio
 from .fundamental import FundamentalGeometry
 from .geometry import EpipolarGeometry, TwoViewGeometry
-from .matching import auto, guided
+from .matching import auto, guided, repeats
 from .matching.config import AcceptRule, AutoTol, SearchConfig, resolve
 from .matching.filtering import keep_mask
 from .refinement import robust_sigma, segment_residuals
@@ -228,7 +228,7 @@ def union(inputs: guided.MatchInputs, pairs: np.ndarray, est: EstimatedGeometry,
 
 def match_without_pose(descriptors1, descriptors2, points1, points2, *, image_size1, image_size2, K1=None, K2=None,
                        norm="l2", search: SearchConfig | None = None, rule: AcceptRule | None = None, rng: int = 0,
-                       first_ratio: float = 0.8, threshold: float = 1.0,
+                       first_ratio: float = 0.8, threshold: float = 1.0, reject_repeats: bool = False,
                        **options) -> tuple[np.ndarray, np.ndarray, EstimatedGeometry]:
     """Match two views with no pose: estimate the geometry, match on its segments, add the first pass.
 
@@ -242,6 +242,11 @@ def match_without_pose(descriptors1, descriptors2, points1, points2, *, image_si
         units of the recovered ``|t| = 1``).
     first_ratio, threshold : float, optional
         Ratio of the first pass and RANSAC threshold (pixels) of :func:`estimate_geometry`.
+    reject_repeats : bool, optional
+        Leave out the matches whose keypoints have a twin in their own image inside the same band
+        (:mod:`episeg_cv.matching.repeats`: ``d(match) >= first_ratio * d(twin)``, Lowe's test against
+        the twin). For repeated structure; default False (it also drops a few correct matches of
+        ordinary pairs: numbers in ``benchmarks/results/compare.md``).
 
     Returns
     -------
@@ -259,11 +264,17 @@ def match_without_pose(descriptors1, descriptors2, points1, points2, *, image_si
         raise ValueError("K1 and K2 must be given together (both for the essential path, neither for F)")
     if K1 is None and search.bounded:
         raise ValueError("a depth range needs K1 and K2 (without a calibration, depth has no unit)")
+    if not isinstance(reject_repeats, (bool, np.bool_)):
+        raise TypeError(f"reject_repeats must be True or False, got {reject_repeats!r}")
     if K1 is not None:
         K1, K2 = as_camera_matrix(K1, "K1"), as_camera_matrix(K2, "K2")
-    est = estimate(inputs, size1, size2, K1, K2, ratio=as_ratio(first_ratio, "first_ratio"),
-                   threshold=_positive(threshold, "threshold"), rng=rng, search=search)
+    first_ratio = as_ratio(first_ratio, "first_ratio")
+    est = estimate(inputs, size1, size2, K1, K2, ratio=first_ratio, threshold=_positive(threshold, "threshold"),
+                   rng=rng, search=search)
     s = search.replace(tol=est.tol)
     pairs, _ = guided.match(inputs, est.geometry, s, rule, rng)
     out, dist = union(inputs, pairs, est, s)
+    if reject_repeats:  # Lowe's test against the twin: the first pass's ratio
+        keep = ~repeats.ambiguous(inputs, out, est.geometry, s, first_ratio)
+        out, dist = out[keep], dist[keep]
     return out, dist, est
