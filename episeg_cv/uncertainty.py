@@ -58,7 +58,9 @@ matches' robust sigma when the residuals say the keypoints are noisier. The
 posterior is narrow where the matches constrain the pose and stays wide where
 they do not (the trade-off of rotation and translation of a narrow lens, at
 depths the matches do not reach): with the exact band above, that width
-reaches only the parts of the segments the data do not pin down.
+reaches only the parts of the segments the data do not pin down. Filtering
+given pairs (:func:`episeg_cv.filter_pairs`) tests them against the bands of
+the covariance itself: it has no confident matches to learn from.
 """
 
 from __future__ import annotations
