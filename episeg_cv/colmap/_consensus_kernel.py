@@ -5,7 +5,7 @@ other (:func:`consensus`) or in blocks on threads (:func:`consensus_parallel`), 
 
 Every array is checked and laid out by :func:`.consensus.verify_tracks`; these
 functions trust them. Nodes are (image, keypoint) observations, ``0 .. n-1``;
-edges are candidate matches between two nodes with their ratio values.
+edges are candidate matches between two nodes of different images with their ratio values.
 """
 
 from __future__ import annotations
@@ -75,12 +75,28 @@ def _triangulate(P, node_image, node_xy, nodes, count, out):
 
 
 @nb.njit(cache=True, nogil=True)
-def _inliers(P, node_image, node_xy, X, cand, n_cand, tau, best_err, best_node, touched, out):
-    """The observations among ``cand`` that reproject within ``tau`` px of ``X`` (in front of the
-    camera), one per image: the closest. Written to ``out``; returns their number."""
+def _support(P, node_image, node_xy, X, a, b, adj_ptr, adj, eu, ev, alive, tau, stamp, mark, queue, best_err,
+             best_node, touched, out):
+    """The support of the point ``X`` grown from the observations ``a`` and ``b`` through the match graph:
+    ``(count, score)``.
+
+    Breadth first from ``a`` and ``b`` along the edges, through alive observations only, and only through
+    those that reproject within ``tau`` pixels of ``X`` in front of their camera: the support is connected
+    by candidate matches. Per image only the closest counts; they are written to ``out``. ``score`` is
+    MSAC's (Torr and Zisserman 2000): the sum over them of ``1 - (error / tau)^2``, so that of two points
+    explaining as many observations the one that explains them more tightly wins.
+    """
+    head = 0
+    tail = 0
+    for s in (a, b):
+        if mark[s] != stamp:
+            mark[s] = stamp
+            queue[tail] = s
+            tail += 1
     n_touched = 0
-    for q in range(n_cand):
-        v = cand[q]
+    while head < tail:
+        v = queue[head]
+        head += 1
         k = node_image[v]
         h0 = P[k, 0, 0] * X[0] + P[k, 0, 1] * X[1] + P[k, 0, 2] * X[2] + P[k, 0, 3]
         h1 = P[k, 1, 0] * X[0] + P[k, 1, 1] * X[1] + P[k, 1, 2] * X[2] + P[k, 1, 3]
@@ -100,20 +116,32 @@ def _inliers(P, node_image, node_xy, X, cand, n_cand, tau, best_err, best_node, 
         elif err < best_err[k]:
             best_err[k] = err
             best_node[k] = v
+        for p in range(adj_ptr[v], adj_ptr[v + 1]):
+            w = eu[adj[p]] + ev[adj[p]] - v
+            if mark[w] != stamp and alive[w]:
+                mark[w] = stamp
+                queue[tail] = w
+                tail += 1
+    score = 0.0
     for q in range(n_touched):
         k = touched[q]
         out[q] = best_node[k]
+        e = best_err[k] / tau
+        score += 1.0 - e * e
         best_node[k] = -1
         best_err[k] = np.inf
-    return n_touched
+    return n_touched, score
 
 
 @nb.njit(cache=True, nogil=True)
-def _ball(a, b, adj_ptr, adj, alive, hops, limit, stamp, mark, queue, depth):
-    """Alive nodes within ``hops`` edges of ``a`` or ``b`` (breadth first, at most ``limit``), in ``queue``."""
+def _window(e0, adj_ptr, adj, eu, ev, rank, alive, dead, hops, limit, max_seeds, stamp, mark, queue, depth, estamp,
+            seeds):
+    """The seeds of a round: ``e0`` first, then the live edges of lowest ``rank`` (ratio, then input order)
+    among the alive observations within ``hops`` edges of its ends (breadth first, at most ``limit``
+    observations); at most ``max_seeds``, in ``seeds``. Returns their number."""
     head = 0
     tail = 0
-    for s in (a, b):
+    for s in (eu[e0], ev[e0]):
         if mark[s] != stamp:
             mark[s] = stamp
             queue[tail] = s
@@ -126,7 +154,7 @@ def _ball(a, b, adj_ptr, adj, alive, hops, limit, stamp, mark, queue, depth):
         if d >= hops:
             continue
         for p in range(adj_ptr[v], adj_ptr[v + 1]):
-            w = adj[p]
+            w = eu[adj[p]] + ev[adj[p]] - v
             if mark[w] != stamp and alive[w]:
                 mark[w] = stamp
                 queue[tail] = w
@@ -134,7 +162,58 @@ def _ball(a, b, adj_ptr, adj, alive, hops, limit, stamp, mark, queue, depth):
                 tail += 1
                 if tail >= limit:
                     break
-    return tail
+    seeds[0] = e0
+    n = 1
+    estamp[e0] = stamp
+    for q in range(tail):
+        v = queue[q]
+        for p in range(adj_ptr[v], adj_ptr[v + 1]):
+            k = adj[p]
+            if estamp[k] == stamp or dead[k] or mark[eu[k] + ev[k] - v] != stamp:
+                continue
+            estamp[k] = stamp
+            # into seeds[1:n], ordered by rank, keeping the max_seeds - 1 lowest (e0 has the lowest of all)
+            r = rank[k]
+            if n < max_seeds:
+                j = n
+                n += 1
+            elif rank[seeds[n - 1]] > r:
+                j = n - 1
+            else:
+                continue
+            while j > 1 and rank[seeds[j - 1]] > r:
+                seeds[j] = seeds[j - 1]
+                j -= 1
+            seeds[j] = k
+    return n
+
+
+@nb.njit(cache=True, nogil=True)
+def _distinct_views(node_image, centers, X, nodes, count, cos_min_angle, dirs):
+    """How many of the observations ``nodes[:count]`` see the point ``X`` from directions at least the
+    minimum angle apart (greedy, in order): views whose rays meet at a smaller angle count once."""
+    n = 0
+    for q in range(count):
+        k = node_image[nodes[q]]
+        d0 = centers[k, 0] - X[0]
+        d1 = centers[k, 1] - X[1]
+        d2 = centers[k, 2] - X[2]
+        nrm = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        if nrm > 0.0:
+            d0 /= nrm
+            d1 /= nrm
+            d2 /= nrm
+        new = True
+        for r in range(n):
+            if d0 * dirs[r, 0] + d1 * dirs[r, 1] + d2 * dirs[r, 2] > cos_min_angle:
+                new = False
+                break
+        if new:
+            dirs[n, 0] = d0
+            dirs[n, 1] = d1
+            dirs[n, 2] = d2
+            n += 1
+    return n
 
 
 @nb.njit(cache=True, nogil=True)
@@ -178,9 +257,9 @@ def _sort_by_ratio(edge_order, p, q, er):
 def _prepare(node_image, eu, ev, er):
     """Union-find, adjacency and the orders: ``(adj_ptr, adj, node_order, edge_order, comp_node, comp_edge)``.
 
-    Components in the order of their root; ``comp_node[c]:comp_node[c + 1]`` are the positions in
-    ``node_order`` of component ``c``'s nodes, ``comp_edge`` the same in ``edge_order`` (in input
-    order: :func:`_sort_by_ratio` sorts them)."""
+    ``adj[adj_ptr[v]:adj_ptr[v + 1]]`` are the edges of node ``v``. Components in the order of their
+    root; ``comp_node[c]:comp_node[c + 1]`` are the positions in ``node_order`` of component ``c``'s
+    nodes, ``comp_edge`` the same in ``edge_order`` (in input order: :func:`_sort_by_ratio` sorts them)."""
     n = node_image.shape[0]
     m = eu.shape[0]
     parent = np.arange(n)
@@ -192,7 +271,7 @@ def _prepare(node_image, eu, ev, er):
     root = np.empty(n, np.int64)
     for v in range(n):
         root[v] = _find(parent, v)
-    # adjacency (CSR), for the neighbourhoods of big components
+    # adjacency (CSR): the edges of each node
     deg = np.zeros(n + 1, np.int64)
     for e in range(m):
         deg[eu[e] + 1] += 1
@@ -201,9 +280,9 @@ def _prepare(node_image, eu, ev, er):
     fill = adj_ptr[:-1].copy()
     adj = np.empty(2 * m, np.int64)
     for e in range(m):
-        adj[fill[eu[e]]] = ev[e]
+        adj[fill[eu[e]]] = e
         fill[eu[e]] += 1
-        adj[fill[ev[e]]] = eu[e]
+        adj[fill[ev[e]]] = e
         fill[ev[e]] += 1
     # nodes and edges by component, in input order (each component's edges are then sorted by ratio,
     # by _sort_by_ratio, where the component is processed)
@@ -234,120 +313,117 @@ def _prepare(node_image, eu, ev, er):
 
 
 @nb.njit(cache=True, nogil=True)
-def _components(c0, c1, P, node_image, node_xy, eu, ev, er, n_images, tau, max_seeds, max_component, hops, adj_ptr, adj,
-                node_order, edge_order, comp_node, comp_edge, alive, dead, mark, group, slot_views, comp_groups,
-                comp_stats, bound):
+def _components(c0, c1, P, centers, node_image, node_xy, eu, ev, er, n_images, tau, cos_min_angle, max_seeds,
+                neighbourhood, hops, adj_ptr, adj, edge_order, comp_node, comp_edge, alive, dead, mark, estamp, group,
+                slot_views, comp_groups, comp_unsupported, bound, rank):
     """Components ``c0:c1`` (disjoint node and edge sets: the shared arrays are written in their rows only).
 
-    ``bound[k]`` is an upper bound of seed edge ``k``'s support, kept from the round that last counted it:
-    observations only leave the candidates (into groups), so a support can only shrink, and a seed whose
-    bound does not beat the best support of the round so far is not counted again. The first seed with
-    the largest support still wins, so the groups are those of counting every seed every round (a big
-    component's neighbourhood cut at ``max_component`` could gain observations: its count is no bound).
+    Each round takes the component's lowest-ratio live edge (both ends alive, not found unsupported) and
+    the seeds around it (:func:`_window`); the seed with the best support (:func:`_support`) wins, its
+    observations are triangulated together, checked again and form a group. ``bound[k]`` is an upper
+    bound of seed edge ``k``'s score, kept from the round that last scored it: observations only leave the
+    graph (into groups), so a support can only shrink, and a seed whose bound does not beat the best score
+    of the round so far is not scored again (the first seed with the best score still wins).
 
     A group of component ``c`` is numbered ``comp_node[c] + local`` (a component has fewer groups than
-    nodes); :func:`_number_groups` renumbers them in component order. ``comp_groups[c]`` is the
-    number of groups, ``comp_stats[c]`` = (big, unsupported seeds)."""
+    nodes); :func:`_number_groups` renumbers them in component order. ``slot_views`` holds each group's
+    distinct views (:func:`_distinct_views`), ``comp_groups[c]`` the number of groups,
+    ``comp_unsupported[c]`` the seeds that found no support."""
+    max_nodes = 1
+    for c in range(c0, c1):
+        max_nodes = max(max_nodes, comp_node[c + 1] - comp_node[c])
     best_err = np.full(n_images, np.inf)
     best_node = np.full(n_images, -1, np.int64)
     touched = np.empty(n_images, np.int64)
     inl = np.empty(n_images, np.int64)
     best_inl = np.empty(n_images, np.int64)
     again = np.empty(n_images, np.int64)
+    dirs = np.empty((n_images, 3))
     seeds = np.empty(max_seeds, np.int64)
-    cand = np.empty(max_component + 2, np.int64)
-    depth = np.empty(max_component + 2, np.int64)
+    queue = np.empty(max_nodes, np.int64)  # (a search never leaves its component)
+    depth = np.empty(max_nodes, np.int64)
     X = np.empty(3)
     pair = np.empty(2, np.int64)
-    stamp = 0  # (mark is read only for nodes of the component being processed)
+    stamp = 0  # (mark and estamp are read only for nodes and edges of the component being processed)
     for c in range(c0, c1):
-        p_node, q_node = comp_node[c], comp_node[c + 1]
+        p_node = comp_node[c]
         p_edge, q_edge = comp_edge[c], comp_edge[c + 1]
         _sort_by_ratio(edge_order, p_edge, q_edge, er)  # lowest ratio first; ties in input order
-        nc = q_node - p_node
-        big = nc > max_component
+        for q in range(p_edge, q_edge):
+            rank[edge_order[q]] = q
         n_groups = 0
         n_unsupported = 0
-        first = p_edge  # edges before it have a removed or dead end
+        first = p_edge  # edges before it have a removed end or found no support: they stay so
         while True:
-            n_seeds = 0
-            e = first
-            while e < q_edge and n_seeds < max_seeds:
-                k = edge_order[e]
+            while first < q_edge:
+                k = edge_order[first]
                 if alive[eu[k]] and alive[ev[k]] and not dead[k]:
-                    seeds[n_seeds] = k
-                    n_seeds += 1
-                e += 1
-            if n_seeds == 0:
+                    break
+                first += 1
+            if first == q_edge:
                 break
-            # an edge with a removed or dead end stays so: the scanned ones are dropped, the seeds moved up to
-            # the unscanned rest (same order), so that no round scans them again
-            first = e - n_seeds
-            for s in range(n_seeds):
-                edge_order[first + s] = seeds[s]
-            n_cand = 0
-            if not big:  # every alive node of the component
-                for q in range(p_node, q_node):
-                    v = node_order[q]
-                    if alive[v]:
-                        cand[n_cand] = v
-                        n_cand += 1
+            stamp += 1
+            n_seeds = _window(edge_order[first], adj_ptr, adj, eu, ev, rank, alive, dead, hops, neighbourhood,
+                              max_seeds, stamp, mark, queue, depth, estamp, seeds)
             best_count = 0
+            best_score = 0.0
             best_seed = -1
             for s in range(n_seeds):
                 k = seeds[s]
-                if bound[k] <= best_count:  # cannot win this round
+                if bound[k] <= best_score:  # cannot win this round
                     continue
-                if big:
-                    stamp += 1
-                    n_cand = _ball(eu[k], ev[k], adj_ptr, adj, alive, hops, max_component, stamp, mark, cand, depth)
                 pair[0] = eu[k]
                 pair[1] = ev[k]
                 if not _triangulate(P, node_image, node_xy, pair, 2, X):
-                    bound[k] = 0  # (the same two rays every round)
+                    bound[k] = 0.0  # (the same two rays every round)
                     continue
-                cnt = _inliers(P, node_image, node_xy, X, cand, n_cand, tau, best_err, best_node, touched, inl)
-                bound[k] = cnt if not (big and n_cand >= max_component) else n_images
-                if cnt > best_count:
+                stamp += 1
+                cnt, score = _support(P, node_image, node_xy, X, eu[k], ev[k], adj_ptr, adj, eu, ev, alive, tau,
+                                      stamp, mark, queue, best_err, best_node, touched, inl)
+                bound[k] = score
+                if cnt >= 2 and score > best_score:
                     best_count = cnt
+                    best_score = score
                     best_seed = k
                     best_inl[:cnt] = inl[:cnt]
-            if best_count < 2:
+            if best_seed < 0:
                 for s in range(n_seeds):
                     dead[seeds[s]] = True
                 n_unsupported += n_seeds
                 continue
             count = best_count
             if _triangulate(P, node_image, node_xy, best_inl, best_count, X):
-                if big:
-                    stamp += 1
-                    n_cand = _ball(eu[best_seed], ev[best_seed], adj_ptr, adj, alive, hops, max_component, stamp,
-                                   mark, cand, depth)
-                cnt = _inliers(P, node_image, node_xy, X, cand, n_cand, tau, best_err, best_node, touched, again)
+                stamp += 1
+                cnt, _ = _support(P, node_image, node_xy, X, eu[best_seed], ev[best_seed], adj_ptr, adj, eu, ev,
+                                  alive, tau, stamp, mark, queue, best_err, best_node, touched, again)
                 if cnt >= 2:
                     best_inl[:cnt] = again[:cnt]
                     count = cnt
+                    _triangulate(P, node_image, node_xy, best_inl, count, X)
+            else:
+                pair[0] = eu[best_seed]
+                pair[1] = ev[best_seed]
+                _triangulate(P, node_image, node_xy, pair, 2, X)
             slot = p_node + n_groups
             for q in range(count):
                 v = best_inl[q]
                 group[v] = slot
                 alive[v] = False
-            slot_views[slot] = count  # one observation per image
+            slot_views[slot] = _distinct_views(node_image, centers, X, best_inl, count, cos_min_angle, dirs)
             n_groups += 1
         comp_groups[c] = n_groups
-        comp_stats[c, 0] = 1 if big else 0
-        comp_stats[c, 1] = n_unsupported
+        comp_unsupported[c] = n_unsupported
 
 
 @nb.njit(cache=True, nogil=True)
-def _setup(n, m, n_comp, n_images):
-    return (np.ones(n, np.bool_), np.zeros(m, np.bool_), np.zeros(n, np.int64), np.full(n, -1, np.int64),
-            np.zeros(n, np.int64), np.zeros(n_comp, np.int64), np.zeros((n_comp, 2), np.int64),
-            np.full(m, n_images, np.int64))  # a group holds at most one observation per image
+def _setup(n, m, n_comp):
+    return (np.ones(n, np.bool_), np.zeros(m, np.bool_), np.zeros(n, np.int64), np.zeros(m, np.int64),
+            np.full(n, -1, np.int64), np.zeros(n, np.int64), np.zeros(n_comp, np.int64), np.zeros(n_comp, np.int64),
+            np.full(m, np.inf), np.empty(m, np.int64))
 
 
 @nb.njit(cache=True, nogil=True)
-def _number_groups(group, slot_views, comp_node, comp_groups, comp_stats):
+def _number_groups(group, slot_views, comp_node, comp_groups, comp_unsupported):
     """Groups numbered 0, 1, ... in component order (as one pass over the components would):
     ``(group, group_views, stats)``."""
     n_comp = comp_groups.shape[0]
@@ -366,36 +442,39 @@ def _number_groups(group, slot_views, comp_node, comp_groups, comp_stats):
     for v in range(group.shape[0]):
         if group[v] >= 0:
             group[v] = new_id[group[v]]
-    stats = np.array([n_comp, total, comp_stats[:, 0].sum(), comp_stats[:, 1].sum()], np.int64)
+    stats = np.array([n_comp, total, comp_unsupported.sum()], np.int64)
     return group, group_views, stats
 
 
 @nb.njit(cache=True, nogil=True)
-def consensus(P, node_image, node_xy, eu, ev, er, n_images, tau, max_seeds, max_component, hops):
-    """Consensus groups of the observations: ``(group (n,) int64, group_views (G,) int64, stats (4,) int64)``.
+def consensus(P, centers, node_image, node_xy, eu, ev, er, n_images, tau, cos_min_angle, max_seeds, neighbourhood,
+              hops):
+    """Consensus groups of the observations: ``(group (n,) int64, group_views (G,) int64, stats (3,) int64)``.
 
-    ``group[v]`` is -1 for an observation in no group. ``stats``: components,
-    groups, components above ``max_component`` nodes, seeds that found no
-    support. See :func:`.consensus.verify_tracks` for the algorithm.
+    ``P (n_images, 3, 4)`` and ``centers (n_images, 3)`` in the same world frame; ``group[v]`` is -1 for
+    an observation in no group; ``group_views`` counts each group's views whose rays at its point are at
+    least the minimum angle apart (``cos_min_angle`` its cosine). ``stats``: components, groups, seeds
+    that found no support. See :func:`.consensus.verify_tracks` for the algorithm.
     """
     adj_ptr, adj, node_order, edge_order, comp_node, comp_edge = _prepare(node_image, eu, ev, er)
     n_comp = comp_node.shape[0] - 1
-    alive, dead, mark, group, slot_views, comp_groups, comp_stats, bound = _setup(node_image.shape[0], eu.shape[0],
-                                                                                 n_comp, n_images)
-    _components(0, n_comp, P, node_image, node_xy, eu, ev, er, n_images, tau, max_seeds, max_component, hops, adj_ptr,
-                adj, node_order, edge_order, comp_node, comp_edge, alive, dead, mark, group, slot_views, comp_groups,
-                comp_stats, bound)
-    return _number_groups(group, slot_views, comp_node, comp_groups, comp_stats)
+    alive, dead, mark, estamp, group, slot_views, comp_groups, comp_unsupported, bound, rank = _setup(
+        node_image.shape[0], eu.shape[0], n_comp)
+    _components(0, n_comp, P, centers, node_image, node_xy, eu, ev, er, n_images, tau, cos_min_angle, max_seeds,
+                neighbourhood, hops, adj_ptr, adj, edge_order, comp_node, comp_edge, alive, dead, mark, estamp, group,
+                slot_views, comp_groups, comp_unsupported, bound, rank)
+    return _number_groups(group, slot_views, comp_node, comp_groups, comp_unsupported)
 
 
 @nb.njit(cache=True, nogil=True, parallel=True)
-def consensus_parallel(P, node_image, node_xy, eu, ev, er, n_images, tau, max_seeds, max_component, hops, blocks):
+def consensus_parallel(P, centers, node_image, node_xy, eu, ev, er, n_images, tau, cos_min_angle, max_seeds,
+                       neighbourhood, hops, blocks):
     """:func:`consensus` on threads: blocks of components with about equal numbers of edges (components
     share no node or edge, and the groups are numbered in component order afterwards: the same result)."""
     adj_ptr, adj, node_order, edge_order, comp_node, comp_edge = _prepare(node_image, eu, ev, er)
     n_comp = comp_node.shape[0] - 1
-    alive, dead, mark, group, slot_views, comp_groups, comp_stats, bound = _setup(node_image.shape[0], eu.shape[0],
-                                                                                 n_comp, n_images)
+    alive, dead, mark, estamp, group, slot_views, comp_groups, comp_unsupported, bound, rank = _setup(
+        node_image.shape[0], eu.shape[0], n_comp)
     m = eu.shape[0]
     nblk = blocks
     cuts = np.searchsorted(comp_edge, np.arange(nblk + 1) * m // nblk)  # component index at each edge quantile
@@ -404,7 +483,7 @@ def consensus_parallel(P, node_image, node_xy, eu, ev, er, n_images, tau, max_se
     for b in prange(nblk):
         c0, c1 = cuts[b], cuts[b + 1]
         if c1 > c0:
-            _components(c0, c1, P, node_image, node_xy, eu, ev, er, n_images, tau, max_seeds, max_component, hops,
-                        adj_ptr, adj, node_order, edge_order, comp_node, comp_edge, alive, dead, mark, group,
-                        slot_views, comp_groups, comp_stats, bound)
-    return _number_groups(group, slot_views, comp_node, comp_groups, comp_stats)
+            _components(c0, c1, P, centers, node_image, node_xy, eu, ev, er, n_images, tau, cos_min_angle,
+                        max_seeds, neighbourhood, hops, adj_ptr, adj, edge_order, comp_node, comp_edge, alive, dead,
+                        mark, estamp, group, slot_views, comp_groups, comp_unsupported, bound, rank)
+    return _number_groups(group, slot_views, comp_node, comp_groups, comp_unsupported)

@@ -9,32 +9,45 @@ anything is written:
 1. **Edges.** Every mutual candidate with ratio below ``loose`` (default 1:
    every mutual candidate; the tracks decide) that also lies on its segment
    in the reverse direction (as :func:`~episeg_cv.colmap.match_pair` checks).
+   A candidate may be marked non-mutual (the nearest in one direction only):
+   it is an edge like the others but never kept on its ratio alone.
 2. **Components.** The edges join (image, keypoint) observations; union-find
-   gives the connected components (median 3 observations on the measured sets).
-3. **Consensus groups, RANSAC-style.** In each component, up to ``max_seeds``
-   (24) remaining edges, lowest ratio first, are triangulated from their two
-   observations; the seed whose point reprojects within ``tau`` pixels (the
-   matching ``tol``) of the most remaining observations (in front of the
-   camera; per image only the closest) wins. Its observations are
-   re-triangulated together, re-checked, and form a group, which leaves the
-   component. Repeat until fewer than two observations remain. A seed set
-   with no support is set aside and the next seeds are tried.
+   gives the connected components, processed independently.
+3. **Consensus groups, RANSAC-style.** Each round takes the component's
+   lowest-ratio edge whose two ends are still free and, as seeds, the
+   ``max_seeds`` (24) lowest-ratio edges among the free observations within
+   ``hops`` (2) edges of it. Each seed is triangulated from its two
+   observations; its support grows from them along the edges, through the
+   observations that reproject within ``tau`` pixels (the band's consensus
+   tolerance) in front of their camera, per image only the closest. The seed
+   with the best MSAC score wins (the sum over its support of
+   ``1 - (error / tau)^2``: as many observations, explained more tightly). Its
+   observations are re-triangulated together, re-checked, and form a group,
+   which leaves the graph. A round whose seeds find no support sets them
+   aside. Until no free edge remains.
 4. **Decision.** An edge is kept when both ends are in the same group and
-   either its ratio is below the pair rule's (``strict``, 0.68) or the group
-   spans at least ``min_views`` (3) images. A strict edge whose ends fall in
+   either it is mutual with a ratio below the pair rule's (``strict``, 0.68),
+   or the group spans at least ``min_views`` (3) distinct views: views whose
+   rays meet at the group's point at less than ``min_angle`` (1.5 degrees,
+   COLMAP's minimum triangulation angle) count once, since a view from (nearly)
+   the same place adds no check of the depth. A strict edge whose ends fall in
    different groups is dropped: a track contradicts it.
-
-Components above ``max_component`` observations (repeated texture can chain
-thousands) are split rather than left unverified: each seed is then tested
-against the observations within ``hops`` edges of it, not the whole component.
 
 Why RANSAC seeds and not a least-squares fit of each whole track: one false
 edge that merges two true tracks makes the fit land between them, and the
-true observations get dropped. Measured on the real dinoSparseRing collection
-and two synthetic rooms (issue 14, ``benchmarks/colmap.py``), with the
-collection defaults (``tol="auto"``, every mutual candidate an edge) it gives
-15-38 % more accurate 3D points than the pair rule alone at 2 px with the same
-features, at a higher accurate fraction (by 0.4-0.5 points).
+true observations get dropped. Why the seeds around one edge, not the
+component's lowest-ratio ones: false edges chain tracks into components of
+thousands of observations (a third of them on the 12-view room, four fifths
+on templeSparseRing), and there a seed must compete with the seeds that
+explain the same observations, not with unrelated ones. Why the support along
+the edges: an observation that merely lands near the point, with no candidate
+match to the track, is not evidence for it. Why MSAC's score rather than the
+count: the count prefers the seed that sweeps in the most borderline
+observations (two nearby features, a T-junction), and those groups were
+the least accurate. Why distinct views: templeSparseRing has two images taken
+from the same place, whose matches made any third image look like a check.
+Measured (``benchmarks/colmap.py`` and held-out rooms and templeSparseRing,
+issue 14): see the README.
 """
 
 from __future__ import annotations
@@ -45,7 +58,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import threads
-from .._validation import as_ratio
+from .._validation import as_array, as_ratio
 from . import _consensus_kernel
 
 __all__ = ["TrackConsensus", "verify_tracks", "projection_matrices"]
@@ -65,18 +78,22 @@ class TrackConsensus:
         the real dinoSparseRing and two synthetic rooms, with COLMAP's features
         and with ours (``benchmarks/colmap.py``).
     min_views : int >= 2
-        Images a group must span for its edges with a ratio between the pair
-        rule's and ``loose`` to be kept. Default 3.
+        Distinct views a group must span for its edges that are not strict
+        (loose ratio, or not mutual) to be kept. Default 3.
     tau : float or None
         Reprojection tolerance in pixels (of the pinhole image); None: the
         matching ``tol``. Default None.
+    min_angle : float in [0, 90)
+        Degrees: views whose rays meet at a group's point at a smaller angle
+        count as one view towards ``min_views``. Default 1.5, COLMAP's
+        minimum triangulation angle (0: every image counts).
     max_seeds : int >= 1
-        Seeds tried per group. Default 24.
-    max_component : int >= 2
-        Above this many observations a component is verified locally
-        (``hops``). Default 1000.
+        Seeds tried per round. Default 24.
+    neighbourhood : int >= 2
+        A round's seeds come from at most this many observations around its
+        lowest-ratio edge. Default 1000.
     hops : int >= 1
-        Neighbourhood of a seed in a big component, in edges. Default 2.
+        The radius of that neighbourhood, in edges. Default 2.
 
     Examples
     --------
@@ -91,41 +108,86 @@ class TrackConsensus:
     loose: float = 1.0
     min_views: int = 3
     tau: float | None = None
+    min_angle: float = 1.5
     max_seeds: int = 24
-    max_component: int = 1000
+    neighbourhood: int = 1000
     hops: int = 2
 
     def __post_init__(self):
         object.__setattr__(self, "loose", as_ratio(self.loose, "loose"))
-        for name, low in (("min_views", 2), ("max_seeds", 1), ("max_component", 2), ("hops", 1)):
+        for name, low in (("min_views", 2), ("max_seeds", 1), ("neighbourhood", 2), ("hops", 1)):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < low:
                 raise ValueError(f"{name} must be an integer >= {low}, got {v!r}")
             object.__setattr__(self, name, int(v))
         if self.tau is not None:
-            ok = isinstance(self.tau, (int, float, np.integer, np.floating)) and not isinstance(self.tau, bool) \
-                and np.isfinite(self.tau) and self.tau > 0
-            if not ok:
+            if not (_is_number(self.tau) and np.isfinite(self.tau) and self.tau > 0):
                 raise ValueError(f"tau must be a finite number > 0 or None, got {self.tau!r}")
             object.__setattr__(self, "tau", float(self.tau))
+        if not (_is_number(self.min_angle) and 0 <= self.min_angle < 90):
+            raise ValueError(f"min_angle must be a number of degrees in [0, 90), got {self.min_angle!r}")
+        object.__setattr__(self, "min_angle", float(self.min_angle))
 
     def replace(self, **changes) -> "TrackConsensus":
         """A copy with some fields changed (and checked)."""
         return dataclasses.replace(self, **changes)
 
 
-def projection_matrices(views) -> np.ndarray:
-    """``(n, 3, 4)`` float64 ``K [R | t]`` of the views, in world coordinates moved and scaled so that the
-    camera centres are centred at the origin with a median distance of 1 to it (better conditioned)."""
+def _is_number(x) -> bool:
+    return isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, bool)
+
+
+def _normalised(views) -> tuple[np.ndarray, np.ndarray]:
+    """``(P (n, 3, 4), centers (n, 3))`` in world coordinates moved and scaled so that the camera centres are
+    centred at the origin with a median distance of 1 to it (better conditioned)."""
     centers = np.array([v.center for v in views], dtype=np.float64).reshape(-1, 3)
-    c0 = centers.mean(axis=0)
+    c0 = centers.mean(axis=0) if len(views) else np.zeros(3)
     s = float(np.median(np.linalg.norm(centers - c0, axis=1))) if len(views) else 1.0
     if not (np.isfinite(s) and s > 0):
         s = 1.0
     M = np.eye(4)
     M[:3, :3] *= s
     M[:3, 3] = c0
-    return np.array([v.K @ np.column_stack([v.R, v.t]) @ M for v in views]).reshape(-1, 3, 4)
+    P = np.array([v.K @ np.column_stack([v.R, v.t]) @ M for v in views]).reshape(-1, 3, 4)
+    return P, (centers - c0) / s
+
+
+def projection_matrices(views) -> np.ndarray:
+    """``(n, 3, 4)`` float64 ``K [R | t]`` of the views, in world coordinates moved and scaled so that the
+    camera centres are centred at the origin with a median distance of 1 to it (better conditioned)."""
+    return _normalised(views)[0]
+
+
+def _candidates(candidates, n_views: int):
+    """The checked, flattened candidates: ``(img_a, img_b, pairs, ratio, mutual, sizes)``."""
+    sizes, img_a, img_b, pairs, ratio, mutual = [], [], [], [], [], []
+    for q, c in enumerate(candidates):
+        if not isinstance(c, (tuple, list)) or len(c) not in (4, 5):
+            raise TypeError(f"candidates[{q}] must be a tuple (i, j, pairs, ratio) or (i, j, pairs, ratio, mutual)")
+        i, j = c[0], c[1]
+        for name, v in (("i", i), ("j", j)):
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 0 <= v < n_views:
+                raise ValueError(f"candidates[{q}]: view index {name} must be an integer in [0, {n_views}), "
+                                 f"got {v!r}")
+        if i == j:
+            raise ValueError(f"candidates[{q}]: a pair of two different views is needed, got i = j = {i}")
+        p = as_array(c[2], f"candidates[{q}] pairs", (None, 2), dtype=np.int64)
+        r = as_array(c[3], f"candidates[{q}] ratio", (len(p),), finite=False)
+        if np.isnan(r).any():
+            raise ValueError(f"candidates[{q}] ratio must not be NaN")
+        if len(p) and p.min() < 0:
+            raise ValueError(f"candidates[{q}] pairs must be keypoint indices >= 0, got {int(p.min())}")
+        mu = np.ones(len(p), bool) if len(c) == 4 else as_array(c[4], f"candidates[{q}] mutual", (len(p),),
+                                                                  dtype=bool)
+        sizes.append(len(p))
+        img_a.append(np.full(len(p), int(i), np.int64))
+        img_b.append(np.full(len(p), int(j), np.int64))
+        pairs.append(p)
+        ratio.append(r)
+        mutual.append(mu)
+    cat = (lambda a, shape, dt: np.concatenate(a) if a else np.zeros(shape, dt))
+    return (cat(img_a, 0, np.int64), cat(img_b, 0, np.int64), cat(pairs, (0, 2), np.int64), cat(ratio, 0, float),
+            cat(mutual, 0, bool), sizes)
 
 
 def verify_tracks(views, candidates, keypoints, strict: float, tau: float,
@@ -136,16 +198,18 @@ def verify_tracks(views, candidates, keypoints, strict: float, tau: float,
     ----------
     views : sequence of View
         The posed images (``K``, ``R``, ``t``: world-to-camera, ``X_cam = R X + t``).
-    candidates : sequence of (int, int, (K, 2) array, (K,) array)
+    candidates : sequence of (int, int, (K, 2) array, (K,) array[, (K,) bool array])
         Per pair ``(i, j, pairs, ratio)``: view indices, keypoint index pairs
         ``(index in view i, index in view j)`` and their ratio values, every one
-        below ``config.loose``. The order fixes the result (ties in ratio keep it).
+        below ``config.loose``; optionally ``mutual``: False for a candidate that
+        is the nearest in one direction only (default: all mutual). The order
+        fixes the result (ties in ratio keep it).
     keypoints : callable
         ``keypoints(i)`` -> ``(N_i, 2)`` float64 keypoints of view ``i`` in its
         pinhole image (episeg_cv's pixel convention). Called once per view with
         candidates.
     strict : float
-        The pair rule's ratio: edges below it need no third view.
+        The pair rule's ratio: mutual edges below it need no third view.
     tau : float
         Reprojection tolerance in pixels (``config.tau`` overrides it when set).
     config : TrackConsensus, optional
@@ -155,8 +219,14 @@ def verify_tracks(views, candidates, keypoints, strict: float, tau: float,
     keep : list of (K,) bool
         One mask per item of ``candidates``.
     stats : dict
-        ``components``, ``groups``, ``big_components``, ``unsupported_seeds``,
-        ``edges``, ``kept``.
+        ``components``, ``groups``, ``unsupported_seeds``, ``edges``, ``kept``.
+
+    Raises
+    ------
+    ValueError, TypeError
+        A malformed candidate (view index out of range or ``i = j``, pairs not
+        ``(K, 2)`` non-negative integers, a ratio per pair, NaN), a keypoint
+        index beyond its view's keypoints, a non-positive ``tau``.
 
     Examples
     --------
@@ -175,17 +245,15 @@ def verify_tracks(views, candidates, keypoints, strict: float, tau: float,
     >>> keep[0].tolist()
     [False]
     """
-    tau = float(config.tau if config.tau is not None else tau)
-    sizes = [len(p) for _, _, p, _ in candidates]
+    tau = config.tau if config.tau is not None else tau
+    if not (_is_number(tau) and np.isfinite(tau) and tau > 0):
+        raise ValueError(f"tau must be a finite number > 0, got {tau!r}")
+    tau = float(tau)
+    img_a, img_b, pairs, ratio, mutual, sizes = _candidates(candidates, len(views))
     keep = [np.zeros(n, dtype=bool) for n in sizes]
-    stats = {"components": 0, "groups": 0, "big_components": 0, "unsupported_seeds": 0, "edges": int(sum(sizes)),
-             "kept": 0}
+    stats = {"components": 0, "groups": 0, "unsupported_seeds": 0, "edges": int(sum(sizes)), "kept": 0}
     if not sum(sizes):
         return keep, stats
-    img_a = np.concatenate([np.full(n, i, np.int64) for (i, _, _, _), n in zip(candidates, sizes)])
-    img_b = np.concatenate([np.full(n, j, np.int64) for (_, j, _, _), n in zip(candidates, sizes)])
-    pairs = np.concatenate([np.asarray(p, dtype=np.int64).reshape(-1, 2) for _, _, p, _ in candidates])
-    ratio = np.concatenate([np.asarray(r, dtype=np.float64).reshape(-1) for _, _, _, r in candidates])
     # observations: unique (image, keypoint), numbered 0 .. n-1
     keys = np.concatenate([(img_a << 32) | pairs[:, 0], (img_b << 32) | pairs[:, 1]])
     uniq, inverse = np.unique(keys, return_inverse=True)
@@ -196,20 +264,25 @@ def verify_tracks(views, candidates, keypoints, strict: float, tau: float,
     node_xy = np.empty((len(uniq), 2), dtype=np.float64)
     for k in np.unique(node_image):
         sel = node_image == k
-        node_xy[sel] = np.asarray(keypoints(int(k)), dtype=np.float64)[node_kp[sel]]
-    P = projection_matrices(views)
+        xy = np.asarray(keypoints(int(k)), dtype=np.float64).reshape(-1, 2)
+        if node_kp[sel].max() >= len(xy):
+            raise ValueError(f"candidates: keypoint {int(node_kp[sel].max())} of view {int(k)} is beyond its "
+                             f"{len(xy)} keypoints")
+        node_xy[sel] = xy[node_kp[sel]]
+    P, centers = _normalised(views)
+    cos_min_angle = float(np.cos(np.radians(config.min_angle))) if config.min_angle > 0 else 2.0  # (2: none merge)
     group, group_views, st = threads.run(
         _consensus_kernel.consensus, _consensus_kernel.consensus_parallel, m,
-        P, node_image, node_xy, eu, ev, ratio, len(views), tau, config.max_seeds, config.max_component, config.hops)
+        P, centers, node_image, node_xy, eu, ev, ratio, len(views), tau, cos_min_angle,
+        config.max_seeds, config.neighbourhood, config.hops)
     gu, gv = group[eu], group[ev]
     same = (gu >= 0) & (gu == gv)
     spans = np.zeros(m, dtype=np.int64)
     spans[same] = group_views[gu[same]]
-    ok = same & ((ratio < strict) | (spans >= config.min_views))
+    ok = same & ((mutual & (ratio < strict)) | (spans >= config.min_views))
     start = 0
     for q, n in enumerate(sizes):
         keep[q] = ok[start:start + n]
         start += n
-    stats.update(components=int(st[0]), groups=int(st[1]), big_components=int(st[2]), unsupported_seeds=int(st[3]),
-                 kept=int(ok.sum()))
+    stats.update(components=int(st[0]), groups=int(st[1]), unsupported_seeds=int(st[2]), kept=int(ok.sum()))
     return keep, stats

@@ -119,21 +119,157 @@ def test_empty_candidates_and_empty_pairs():
     assert keep[0].shape == (0,) and keep[1].all() and stats["edges"] == 30
 
 
-def test_big_components_are_verified_locally():
-    """A component above max_component is checked around each seed, not left unverified."""
+def test_tracks_chained_into_one_component_are_each_verified():
+    """False loose edges chain 40 tracks into one component of 200 observations: each track is still found
+    (the seeds of a round are the edges around its lowest-ratio edge), with a neighbourhood of any size."""
     views, _, kp = _scene(n_views=5, n_points=40, seed=3)
     cands = _all_pairs(5, 40, ratio=0.5)
-    # chain every track to the next one with a false loose edge: one component of 200 observations
     i, j, p, r = cands[0]
     chain = np.column_stack([np.arange(39), np.arange(1, 40)])
     cands[0] = (i, j, np.vstack([p, chain]), np.append(r, np.full(39, 0.85)))
-    full, s_full = verify_tracks(views, cands, lambda k: kp[k], strict=0.68, tau=2.0)
-    local, s_local = verify_tracks(views, cands, lambda k: kp[k], strict=0.68, tau=2.0,
-                                   config=TrackConsensus(max_component=20))
-    assert s_full["components"] == 1 and s_full["big_components"] == 0 and s_local["big_components"] == 1
-    for keep in (full, local):
+    for config in (TrackConsensus(), TrackConsensus(neighbourhood=4, hops=1)):
+        keep, stats = verify_tracks(views, cands, lambda k: kp[k], strict=0.68, tau=2.0, config=config)
+        assert stats["components"] == 1 and stats["groups"] == 40
         assert keep[0][:40].all() and not keep[0][40:].any()  # the true matches, not the chain
         assert all(k.all() for k in keep[1:])
+
+
+def test_the_tightest_of_two_equally_supported_seeds_wins():
+    """MSAC's score: a wrong keypoint b* (1 px along the epipolar line from b) makes a seed a-b* whose
+    point still lands within tau of c, as many observations as the true seed a-b; its lower ratio does not
+    let it win, the tighter fit does."""
+    from episeg_cv.colmap.consensus import _normalised
+
+    views, X, kp = _scene(n_views=3, n_points=1, seed=1)
+    kp = kp.copy()
+    e = _epipolar_direction(views[0], views[1], X[0])
+    kp1 = np.vstack([kp[1], kp[1, 0] + 1.0 * e])  # keypoint 1 of view 1: b*
+    pts = {0: kp[0], 1: kp1, 2: kp[2]}
+    cands = [(0, 1, np.array([[0, 1], [0, 0]]), np.array([0.3, 0.4])),  # a-b* (lower ratio), a-b
+             (0, 2, np.array([[0, 0]]), np.array([0.5])), (1, 2, np.array([[0, 0], [1, 0]]), np.array([0.5, 0.6]))]
+    # the premise: seen from a-b*, c is within tau too (so counting alone would take a-b*, the first seed)
+    P, _ = _normalised(views)
+    Xs = _two_view_point(P[0], P[1], pts[0][0], pts[1][1])
+    h = P[2] @ np.append(Xs, 1.0)
+    assert 0.5 < np.hypot(*(h[:2] / h[2] - pts[2][0])) <= 2.0
+    keep, stats = verify_tracks(views, cands, lambda k: pts[k], strict=0.68, tau=2.0,
+                                config=TrackConsensus(min_views=3))
+    assert [k.tolist() for k in keep] == [[False, True], [True], [True, False]]
+    assert stats["groups"] == 1
+
+
+def test_support_grows_along_the_edges_only():
+    """An observation that lands on the track's point but is linked to it only through an observation that
+    does not (a false match) is not part of the track's group."""
+    from episeg_cv.colmap import _consensus_kernel
+    from episeg_cv.colmap.consensus import _normalised
+
+    views, _, kp = _scene(n_views=4, n_points=2, seed=4)
+    # nodes: a, b, c (point 0 in views 0-2), e (point 1 in view 1, far from point 0), d (point 0 in view 3)
+    node_image = np.array([0, 1, 2, 1, 3])
+    node_xy = np.array([kp[0, 0], kp[1, 0], kp[2, 0], kp[1, 1], kp[3, 0]])
+    assert np.hypot(*(kp[1, 1] - kp[1, 0])) > 20
+    eu, ev = np.array([0, 1, 0, 3]), np.array([1, 2, 3, 4])  # a-b, b-c, a-e (false), e-d (false)
+    er = np.array([0.3, 0.5, 0.7, 0.9])
+    P, centers = _normalised(views)
+    group, group_views, stats = _consensus_kernel.consensus(P, centers, node_image, node_xy, eu, ev, er, 4, 2.0,
+                                                            np.cos(np.radians(1.5)), 24, 1000, 2)
+    assert group[0] == group[1] == group[2] >= 0 and group[4] != group[0]
+    assert group_views[group[0]] == 3 and stats[0] == 1
+
+
+def test_views_from_one_place_count_once():
+    """Two images taken from the same place (a rotation apart) and a third: a loose track over the three
+    spans two distinct views, so its loose edges need another view; its strict edge is kept."""
+    views = _ring(3)
+    R, t = scenes.look_at(views[0].center, [0.4, 0.2, 0.0])  # the same centre as view 0, turned
+    views[1] = View("v1.png", 2, 1, K, R, t, SIZE)
+    X = np.array([[0.05, -0.1, 0.1]])
+    kp = _project(views, X)
+    assert np.all((kp > 0) & (kp < SIZE))
+    cands = [(0, 1, np.array([[0, 0]]), np.array([0.5])), (0, 2, np.array([[0, 0]]), np.array([0.8])),
+             (1, 2, np.array([[0, 0]]), np.array([0.8]))]
+    keep, _ = verify_tracks(views, cands, lambda k: kp[k], strict=0.68, tau=2.0)
+    assert [k.tolist() for k in keep] == [[True], [False], [False]]
+    keep, _ = verify_tracks(views, cands, lambda k: kp[k], strict=0.68, tau=2.0, config=TrackConsensus(min_angle=0))
+    assert all(k.all() for k in keep)
+
+
+def test_a_candidate_that_is_not_mutual_needs_a_third_view():
+    views, _, kp = _scene(n_views=3, n_points=3)
+    pair = (0, 1, np.array([[0, 0], [1, 1]]), np.array([0.4, 0.4]), np.array([True, False]))
+    keep, _ = verify_tracks(views, [pair], lambda k: kp[k], strict=0.68, tau=2.0)
+    assert keep[0].tolist() == [True, False]  # the same ratio; only the mutual one on its own
+    third = [(0, 2, np.array([[1, 1]]), np.array([0.9]), np.array([False])),
+             (1, 2, np.array([[1, 1]]), np.array([0.9]))]
+    keep, _ = verify_tracks(views, [pair] + third, lambda k: kp[k], strict=0.68, tau=2.0)
+    assert [k.tolist() for k in keep] == [[True, True], [True], [True]]
+
+
+def test_a_synthetic_collection_with_false_matches_and_a_repeated_viewpoint():
+    """Six views (one taken again from the place of another), 80 points seen with 0.3 px noise, every true
+    match at a loose ratio, 8 % of the matches replaced by a wrong keypoint (chaining the tracks into a few
+    big components): no false match is kept, and almost every true one is."""
+    rng = np.random.default_rng(11)
+    views = _ring(5)
+    R, t = scenes.look_at(views[2].center, [0.3, -0.2, 0.1])
+    views.append(View("v5.png", 6, 1, K, R, t, SIZE))  # view 5: from the place of view 2
+    X = rng.uniform(-0.4, 0.4, (80, 3))
+    kp = _project(views, X) + rng.uniform(-0.3, 0.3, (6, 80, 2))
+    cands, truth = [], []
+    for i in range(6):
+        for j in range(i + 1, 6):
+            p = np.column_stack([np.arange(80), np.arange(80)])
+            false = rng.random(80) < 0.08
+            p[false, 1] = (p[false, 1] + rng.integers(1, 80, int(false.sum()))) % 80
+            cands.append((i, j, p, rng.uniform(0.7, 0.99, 80)))
+            truth.append(~false)
+    keep, stats = verify_tracks(views, cands, lambda k: kp[k], strict=0.68, tau=1.5)
+    kept = np.concatenate(keep)
+    true = np.concatenate(truth)
+    assert stats["components"] < 20 and not (kept & ~true).any()
+    assert kept[true].mean() > 0.95 and stats["groups"] >= 80
+
+
+def _epipolar_direction(v1, v2, X):
+    """Unit direction, in view 2, of the epipolar line of X's projection in view 1, at X's projection."""
+    C1 = v1.center
+    p = [(K @ (v2.R @ Y + v2.t)) for Y in (X, X + 0.1 * (X - C1))]
+    d = p[1][:2] / p[1][2] - p[0][:2] / p[0][2]
+    return d / np.linalg.norm(d)
+
+
+def _two_view_point(P1, P2, x1, x2):
+    A = np.array([x1[0] * P1[2] - P1[0], x1[1] * P1[2] - P1[1], x2[0] * P2[2] - P2[0], x2[1] * P2[2] - P2[1]])
+    A /= np.linalg.norm(A, axis=1, keepdims=True)
+    return np.linalg.solve(A[:, :3].T @ A[:, :3], -A[:, :3].T @ A[:, 3])
+
+
+@pytest.mark.parametrize("cands, error, match", [
+    ([(0, 0, [[0, 0]], [0.5])], ValueError, "i = j"),
+    ([(0, 3, [[0, 0]], [0.5])], ValueError, "view index j"),
+    ([(-1, 1, [[0, 0]], [0.5])], ValueError, "view index i"),
+    ([(0.0, 1, [[0, 0]], [0.5])], ValueError, "view index i"),
+    ([(0, 1, [0, 0], [0.5])], ValueError, "pairs"),
+    ([(0, 1, [[0, -1]], [0.5])], ValueError, ">= 0"),
+    ([(0, 1, [[0, 0]], [0.5, 0.6])], ValueError, "ratio"),
+    ([(0, 1, [[0, 0]], [np.nan])], ValueError, "NaN"),
+    ([(0, 1, [[0, 0]], ["x"])], TypeError, "ratio"),
+    ([(0, 1, [[0, 0]])], TypeError, "tuple"),
+    ([(0, 1, [[0, 0]], [0.5], [True, False])], ValueError, "mutual"),
+    ([(0, 1, [[0, 99]], [0.5])], ValueError, "beyond"),
+])
+def test_bad_candidates_are_refused(cands, error, match):
+    views, _, kp = _scene(n_views=3, n_points=5)
+    with pytest.raises(error, match=match):
+        verify_tracks(views, cands, lambda k: kp[k], strict=0.68, tau=2.0)
+
+
+@pytest.mark.parametrize("tau", [0.0, -1.0, float("inf"), float("nan"), "2"])
+def test_bad_tau_is_refused(tau):
+    views, _, kp = _scene(n_views=3, n_points=5)
+    with pytest.raises(ValueError, match="tau"):
+        verify_tracks(views, _all_pairs(3, 5), lambda k: kp[k], strict=0.68, tau=tau)
 
 
 def test_projection_matrices_are_normalised():
@@ -152,7 +288,9 @@ def test_projection_matrices_are_normalised():
 @pytest.mark.parametrize("kwargs, match", [
     ({"loose": 1.5}, "loose"), ({"loose": 0}, "loose"), ({"min_views": 1}, "min_views"),
     ({"tau": -1.0}, "tau"), ({"tau": float("nan")}, "tau"), ({"max_seeds": 0}, "max_seeds"),
-    ({"max_component": 1}, "max_component"), ({"hops": 0}, "hops"), ({"min_views": 2.5}, "min_views"),
+    ({"neighbourhood": 1}, "neighbourhood"), ({"hops": 0}, "hops"), ({"min_views": 2.5}, "min_views"),
+    ({"min_angle": -1.0}, "min_angle"), ({"min_angle": 90}, "min_angle"), ({"min_angle": "1"}, "min_angle"),
+    ({"tau": True}, "tau"),
 ])
 def test_config_is_checked(kwargs, match):
     with pytest.raises(ValueError, match=match):
@@ -178,13 +316,14 @@ def test_consistent_tracks_are_kept_and_the_order_of_pairs_does_not_matter(seed,
         np.testing.assert_array_equal(k, keep[q])
 
 
-@pytest.mark.parametrize("wrong, max_component", [(0.002, 1000), (0.15, 3)])  # 3: "big" components, split locally
-def test_components_on_threads_give_the_serial_result(wrong, max_component):
+@pytest.mark.parametrize("wrong, neighbourhood", [(0.002, 1000), (0.15, 3)])  # 3: seeds from tiny neighbourhoods
+def test_components_on_threads_give_the_serial_result(wrong, neighbourhood):
     """Thousands of edges: the kernel runs its parallel twin (blocks of components); the kept matches,
     the groups (numbered in component order) and the counts must be those of one thread, with false
     edges, tied ratios and components of every size among them."""
     import episeg_cv
     from episeg_cv.colmap import _consensus_kernel
+    from episeg_cv.colmap.consensus import _normalised
 
     views, _, kp = _scene(n_views=6, n_points=400, seed=3)
     rng = np.random.default_rng(8)
@@ -196,7 +335,7 @@ def test_components_on_threads_give_the_serial_result(wrong, max_component):
         p[false, 1] = rng.integers(0, 400, int(false.sum()))
         cands.append((i, j, p, np.round(rng.uniform(0.3, 0.89, len(p)), 2)))  # rounded: many ties
     assert sum(len(p) for _, _, p, _ in cands) >= episeg_cv.threads.MIN_PARALLEL_ITEMS
-    config = TrackConsensus(max_component=max_component)
+    config = TrackConsensus(neighbourhood=neighbourhood)
     calls = []
     real = _consensus_kernel.consensus_parallel
 
@@ -217,17 +356,17 @@ def test_components_on_threads_give_the_serial_result(wrong, max_component):
         assert calls, "the parallel twin did not run"
     (k1, s1), (k2, s2) = runs[1], runs[2]
     assert s1 == s2 and s1["groups"] > 100
-    assert s1["big_components"] > 0 if max_component == 3 else s1["components"] > 100
+    assert s1["components"] < 50 if wrong > 0.1 else s1["components"] > 100
     for a, b in zip(k1, k2):
         np.testing.assert_array_equal(a, b)
     # and the kernel's own outputs, group by group
-    P = projection_matrices(views)
+    P, centers = _normalised(views)
     node_image = np.repeat(np.arange(6), 400)
     node_xy = kp.reshape(-1, 2)
     eu = np.concatenate([i * 400 + p[:, 0] for i, _, p, _ in cands])
     ev = np.concatenate([j * 400 + p[:, 1] for _, j, p, _ in cands])
     er = np.concatenate([r for _, _, _, r in cands])
-    args = (P, node_image, node_xy, eu, ev, er, 6, 2.0, 24, max_component, 2)
+    args = (P, centers, node_image, node_xy, eu, ev, er, 6, 2.0, np.cos(np.radians(1.5)), 24, neighbourhood, 2)
     serial = _consensus_kernel.consensus(*args)
     for blocks in (1, 3, 16, 64):
         par = _consensus_kernel.consensus_parallel(*args, blocks)
@@ -235,9 +374,10 @@ def test_components_on_threads_give_the_serial_result(wrong, max_component):
             np.testing.assert_array_equal(a, b)
 
 
-def _reference_groups(P, node_image, node_xy, eu, ev, er, n_images, tau, max_seeds, max_component, hops):
-    """The consensus of the module docstring, plainly: every seed counted in every round, every edge
-    scanned (no support bounds, no compaction). ``group`` per node, -1 where none; local numbering."""
+def _reference_groups(P, centers, node_image, node_xy, eu, ev, er, n_images, tau, cos_min_angle, max_seeds,
+                      neighbourhood, hops):
+    """The consensus of the module docstring, plainly: every seed of a round scored (no support bounds),
+    every edge scanned each round. ``(group per node, -1 where none; local numbering, views per group)``."""
     n, m = len(node_image), len(eu)
     parent = list(range(n))
 
@@ -250,14 +390,11 @@ def _reference_groups(P, node_image, node_xy, eu, ev, er, n_images, tau, max_see
         ra, rb = find(a), find(b)
         if ra != rb:
             parent[ra] = rb
-    adj = [[] for _ in range(n)]
-    for a, b in zip(eu, ev):
-        adj[a].append(b)
-        adj[b].append(a)
-    comps = {}
-    for v in range(n):
-        comps.setdefault(find(v), []).append(v)
-    alive, dead, group, gid = np.ones(n, bool), np.zeros(m, bool), np.full(n, -1), 0
+    adj = [[] for _ in range(n)]  # (edge, other end), in edge order
+    for k, (a, b) in enumerate(zip(eu, ev)):
+        adj[a].append((k, b))
+        adj[b].append((k, a))
+    alive, dead, group, views, gid = np.ones(n, bool), np.zeros(m, bool), np.full(n, -1), [], 0
 
     def triangulate(nodes):
         A = []
@@ -269,67 +406,103 @@ def _reference_groups(P, node_image, node_xy, eu, ev, er, n_images, tau, max_see
                     A.append(a / np.linalg.norm(a))
         A = np.array(A)
         N = A[:, :3].T @ A[:, :3]
-        return None if abs(np.linalg.det(N)) < 1e-300 else np.linalg.solve(N, -A[:, :3].T @ A[:, 3])
+        if not abs(np.linalg.det(N)) > 1e-12 * (np.trace(N) / 3) ** 3:
+            return None
+        return np.linalg.solve(N, -A[:, :3].T @ A[:, 3])
 
-    def inliers(X, cand):
-        best = {}
-        for v in cand:
+    def support(X, a, b):  # breadth first along the edges, through alive observations within tau
+        queue, seen, best = [], set(), {}
+        for s in (a, b):
+            if s not in seen:
+                seen.add(s)
+                queue.append(s)
+        for v in queue:
             h = P[node_image[v]] @ np.append(X, 1.0)
-            if h[2] > 0:
-                err = np.hypot(h[0] / h[2] - node_xy[v, 0], h[1] / h[2] - node_xy[v, 1])
-                if err <= tau and (node_image[v] not in best or err < best[node_image[v]][0]):
-                    best[node_image[v]] = (err, v)
-        return [v for _, v in best.values()]
+            if not h[2] > 0:
+                continue
+            err = np.hypot(h[0] / h[2] - node_xy[v, 0], h[1] / h[2] - node_xy[v, 1])
+            if not err <= tau:
+                continue
+            k = node_image[v]
+            if k not in best or err < best[k][0]:
+                best[k] = (err, v)
+            for _, w in adj[v]:
+                if w not in seen and alive[w]:
+                    seen.add(w)
+                    queue.append(w)
+        return [v for _, v in best.values()], sum(1 - (e / tau) ** 2 for e, _ in best.values())
 
-    def ball(a, b):  # breadth first from both ends, alive nodes within hops, at most max_component
-        queue, depth = list(dict.fromkeys([a, b])), [0, 0]
+    def window(e0):
+        queue, depth, seen = [], [], set()
+        for s in (eu[e0], ev[e0]):
+            if s not in seen:
+                seen.add(s)
+                queue.append(s)
+                depth.append(0)
         head = 0
-        while head < len(queue) < max_component:
+        while head < len(queue) < neighbourhood:
             v, d = queue[head], depth[head]
             head += 1
-            for w in adj[v] if d < hops else ():
-                if alive[w] and w not in queue:
+            for _, w in adj[v] if d < hops else ():
+                if w not in seen and alive[w]:
+                    seen.add(w)
                     queue.append(w)
                     depth.append(d + 1)
-                    if len(queue) >= max_component:
+                    if len(queue) >= neighbourhood:
                         break
-        return queue
+        return seen
 
-    for root in sorted(comps, key=lambda r: comps[r][0]):
-        nodes = comps[root]
-        big = len(nodes) > max_component
-        edges = sorted((k for k in range(m) if find(eu[k]) == root), key=lambda k: er[k])
+    def distinct(X, nodes):
+        dirs = []
+        for v in nodes:
+            d = centers[node_image[v]] - X
+            d = d / np.linalg.norm(d)
+            if all(d @ e <= cos_min_angle for e in dirs):
+                dirs.append(d)
+        return len(dirs)
+
+    order = sorted(range(m), key=lambda k: (er[k], k))
+    for root in sorted({find(v) for v in range(n)}):
+        edges = [k for k in order if find(eu[k]) == root]
         while True:
-            seeds = [k for k in edges if alive[eu[k]] and alive[ev[k]] and not dead[k]][:max_seeds]
-            if not seeds:
+            live = [k for k in edges if alive[eu[k]] and alive[ev[k]] and not dead[k]]
+            if not live:
                 break
-            best, best_seed = [], None
+            near = window(live[0])
+            seeds = [live[0]] + [k for k in live[1:] if eu[k] in near and ev[k] in near][:max_seeds - 1]
+            best, best_score, best_seed = [], 0.0, None
             for k in seeds:
                 X = triangulate([eu[k], ev[k]])
                 if X is None:
                     continue
-                cand = ball(eu[k], ev[k]) if big else [v for v in nodes if alive[v]]
-                got = inliers(X, cand)
-                if len(got) > len(best):
-                    best, best_seed = got, k
-            if len(best) < 2:
+                got, score = support(X, eu[k], ev[k])
+                if len(got) >= 2 and score > best_score:
+                    best, best_score, best_seed = got, score, k
+            if best_seed is None:
                 dead[seeds] = True
                 continue
             X = triangulate(best)
             if X is not None:
-                again = inliers(X, ball(eu[best_seed], ev[best_seed]) if big else [v for v in nodes if alive[v]])
-                best = again if len(again) >= 2 else best
+                again, _ = support(X, eu[best_seed], ev[best_seed])
+                if len(again) >= 2:
+                    best = again
+                    X = triangulate(best)
+            else:
+                X = triangulate([eu[best_seed], ev[best_seed]])
             group[best] = gid
             alive[best] = False
+            views.append(distinct(X, best))
             gid += 1
-    return group
+    return group, views
 
 
-@pytest.mark.parametrize("wrong, max_component", [(0.3, 1000), (0.3, 4)])
-def test_the_kernel_is_the_plain_algorithm(wrong, max_component):
-    """The kernel's shortcuts (support bounds kept across rounds, scanned edges dropped) change no group:
-    the same partition of the observations as counting every seed in every round."""
+@pytest.mark.parametrize("wrong, neighbourhood, min_angle", [(0.3, 1000, 1.5), (0.3, 4, 1.5), (0.1, 1000, 30.0)])
+def test_the_kernel_is_the_plain_algorithm(wrong, neighbourhood, min_angle):
+    """The kernel's shortcuts (support bounds kept across rounds, scanned edges dropped, seeds ranked on the
+    fly) change no group: the same partition of the observations, and the same views per group, as scoring
+    every seed of every round."""
     from episeg_cv.colmap import _consensus_kernel
+    from episeg_cv.colmap.consensus import _normalised
 
     views, _, kp = _scene(n_views=5, n_points=25, seed=5)
     rng = np.random.default_rng(2)
@@ -346,11 +519,14 @@ def test_the_kernel_is_the_plain_algorithm(wrong, max_component):
                 q = int(rng.integers(0, 25)) if rng.random() < wrong else p
                 eu.append(nid[i, p])
                 ev.append(nid[j, q])
-    args = (projection_matrices(views), np.array(node_image), np.array(node_xy), np.array(eu), np.array(ev),
-            np.round(rng.uniform(0.3, 0.9, len(eu)), 1), 5, 2.0, 6, max_component, 2)
-    got = _consensus_kernel.consensus(*args)[0]
-    want = _reference_groups(*args)
+    P, centers = _normalised(views)
+    args = (P, centers, np.array(node_image), np.array(node_xy), np.array(eu), np.array(ev),
+            np.round(rng.uniform(0.3, 0.9, len(eu)), 1), 5, 2.0, np.cos(np.radians(min_angle)), 6, neighbourhood, 2)
+    got, got_views, _ = _consensus_kernel.consensus(*args)
+    want, want_views = _reference_groups(*args)
     assert (got >= 0).sum() > 40
-    # the same partition (the kernel numbers its groups by component; compare the node sets)
-    assert {tuple(np.flatnonzero(got == g)) for g in set(got[got >= 0])} == \
-        {tuple(np.flatnonzero(want == g)) for g in set(want[want >= 0])}
+    # the same partition (the kernel numbers its groups by component; compare the node sets) and views
+    as_sets = lambda g, vs: {(tuple(np.flatnonzero(g == q)), int(vs[q])) for q in set(g[g >= 0])}  # noqa: E731
+    assert as_sets(got, got_views) == as_sets(want, want_views)
+    if min_angle > 10:  # a quarter circle of 5 cameras: 30 degrees merges some of them
+        assert any(len(np.flatnonzero(got == q)) > got_views[q] for q in set(got[got >= 0]))
