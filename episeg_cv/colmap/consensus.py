@@ -9,8 +9,6 @@ anything is written:
 1. **Edges.** Every mutual candidate with ratio below ``loose`` (default 1:
    every mutual candidate; the tracks decide) that also lies on its segment
    in the reverse direction (as :func:`~episeg_cv.colmap.match_pair` checks).
-   A candidate may be marked non-mutual (the nearest in one direction only):
-   it is an edge like the others but never kept on its ratio alone.
 2. **Components.** The edges join (image, keypoint) observations; union-find
    gives the connected components, processed independently.
 3. **Consensus groups, RANSAC-style.** Each round takes the component's
@@ -26,8 +24,8 @@ anything is written:
    which leaves the graph. A round whose seeds find no support sets them
    aside. Until no free edge remains.
 4. **Decision.** An edge is kept when both ends are in the same group and
-   either it is mutual with a ratio below the pair rule's (``strict``, 0.68),
-   or the group spans at least ``min_views`` (3) distinct views: views whose
+   either its ratio is below the pair rule's (``strict``, 0.68), or the group
+   spans at least ``min_views`` (3) distinct views: views whose
    rays meet at the group's point at less than ``min_angle`` (1.5 degrees,
    COLMAP's minimum triangulation angle) count once, since a view from (nearly)
    the same place adds no check of the depth. A strict edge whose ends fall in
@@ -78,8 +76,8 @@ class TrackConsensus:
         the real dinoSparseRing and two synthetic rooms, with COLMAP's features
         and with ours (``benchmarks/colmap.py``).
     min_views : int >= 2
-        Distinct views a group must span for its edges that are not strict
-        (loose ratio, or not mutual) to be kept. Default 3.
+        Distinct views a group must span for its edges with a ratio between the
+        pair rule's and ``loose`` to be kept. Default 3.
     tau : float or None
         Reprojection tolerance in pixels (of the pinhole image); None: the
         matching ``tol``. Default None.
@@ -159,11 +157,11 @@ def projection_matrices(views) -> np.ndarray:
 
 
 def _candidates(candidates, n_views: int):
-    """The checked, flattened candidates: ``(img_a, img_b, pairs, ratio, mutual, sizes)``."""
-    sizes, img_a, img_b, pairs, ratio, mutual = [], [], [], [], [], []
+    """The checked, flattened candidates: ``(img_a, img_b, pairs, ratio, sizes)``."""
+    sizes, img_a, img_b, pairs, ratio = [], [], [], [], []
     for q, c in enumerate(candidates):
-        if not isinstance(c, (tuple, list)) or len(c) not in (4, 5):
-            raise TypeError(f"candidates[{q}] must be a tuple (i, j, pairs, ratio) or (i, j, pairs, ratio, mutual)")
+        if not isinstance(c, (tuple, list)) or len(c) != 4:
+            raise TypeError(f"candidates[{q}] must be a tuple (i, j, pairs, ratio)")
         i, j = c[0], c[1]
         for name, v in (("i", i), ("j", j)):
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 0 <= v < n_views:
@@ -177,17 +175,13 @@ def _candidates(candidates, n_views: int):
             raise ValueError(f"candidates[{q}] ratio must not be NaN")
         if len(p) and p.min() < 0:
             raise ValueError(f"candidates[{q}] pairs must be keypoint indices >= 0, got {int(p.min())}")
-        mu = np.ones(len(p), bool) if len(c) == 4 else as_array(c[4], f"candidates[{q}] mutual", (len(p),),
-                                                                  dtype=bool)
         sizes.append(len(p))
         img_a.append(np.full(len(p), int(i), np.int64))
         img_b.append(np.full(len(p), int(j), np.int64))
         pairs.append(p)
         ratio.append(r)
-        mutual.append(mu)
     cat = (lambda a, shape, dt: np.concatenate(a) if a else np.zeros(shape, dt))
-    return (cat(img_a, 0, np.int64), cat(img_b, 0, np.int64), cat(pairs, (0, 2), np.int64), cat(ratio, 0, float),
-            cat(mutual, 0, bool), sizes)
+    return cat(img_a, 0, np.int64), cat(img_b, 0, np.int64), cat(pairs, (0, 2), np.int64), cat(ratio, 0, float), sizes
 
 
 def verify_tracks(views, candidates, keypoints, strict: float, tau: float,
@@ -198,18 +192,16 @@ def verify_tracks(views, candidates, keypoints, strict: float, tau: float,
     ----------
     views : sequence of View
         The posed images (``K``, ``R``, ``t``: world-to-camera, ``X_cam = R X + t``).
-    candidates : sequence of (int, int, (K, 2) array, (K,) array[, (K,) bool array])
+    candidates : sequence of (int, int, (K, 2) array, (K,) array)
         Per pair ``(i, j, pairs, ratio)``: view indices, keypoint index pairs
         ``(index in view i, index in view j)`` and their ratio values, every one
-        below ``config.loose``; optionally ``mutual``: False for a candidate that
-        is the nearest in one direction only (default: all mutual). The order
-        fixes the result (ties in ratio keep it).
+        below ``config.loose``. The order fixes the result (ties in ratio keep it).
     keypoints : callable
         ``keypoints(i)`` -> ``(N_i, 2)`` float64 keypoints of view ``i`` in its
         pinhole image (episeg_cv's pixel convention). Called once per view with
         candidates.
     strict : float
-        The pair rule's ratio: mutual edges below it need no third view.
+        The pair rule's ratio: edges below it need no third view.
     tau : float
         Reprojection tolerance in pixels (``config.tau`` overrides it when set).
     config : TrackConsensus, optional
@@ -249,7 +241,7 @@ def verify_tracks(views, candidates, keypoints, strict: float, tau: float,
     if not (_is_number(tau) and np.isfinite(tau) and tau > 0):
         raise ValueError(f"tau must be a finite number > 0, got {tau!r}")
     tau = float(tau)
-    img_a, img_b, pairs, ratio, mutual, sizes = _candidates(candidates, len(views))
+    img_a, img_b, pairs, ratio, sizes = _candidates(candidates, len(views))
     keep = [np.zeros(n, dtype=bool) for n in sizes]
     stats = {"components": 0, "groups": 0, "unsupported_seeds": 0, "edges": int(sum(sizes)), "kept": 0}
     if not sum(sizes):
@@ -279,7 +271,7 @@ def verify_tracks(views, candidates, keypoints, strict: float, tau: float,
     same = (gu >= 0) & (gu == gv)
     spans = np.zeros(m, dtype=np.int64)
     spans[same] = group_views[gu[same]]
-    ok = same & ((mutual & (ratio < strict)) | (spans >= config.min_views))
+    ok = same & ((ratio < strict) | (spans >= config.min_views))
     start = 0
     for q, n in enumerate(sizes):
         keep[q] = ok[start:start + n]
