@@ -95,7 +95,7 @@ def sample_pairs(pair_list, n: int = SAMPLE_PAIRS) -> list:
 
 
 def collection_band(views, store: FeatureStore, pair_list, search: SearchConfig, rule: AcceptRule,
-                    options: AutoTol, sample: int = SAMPLE_PAIRS, imap=map) -> CollectionBand:
+                    options: AutoTol, sample: int = SAMPLE_PAIRS, imap=map, per_task=None) -> CollectionBand:
     """The collection's band (module docstring) on checked inputs.
 
     Parameters
@@ -114,6 +114,9 @@ def collection_band(views, store: FeatureStore, pair_list, search: SearchConfig,
     imap : callable, optional
         ``imap(fn, items)`` runs the larger sampled pairs (the general path), for example
         :meth:`.runner.Runner.imap`; the small ones are matched here, in one compiled call.
+    per_task : callable, optional
+        ``per_task(n)``: how many of ``n`` larger pairs go in one task (:meth:`.runner.Runner.spread`);
+        default all of them.
     """
     strict = strict_rule(options, rule)
     largest = max((v.image_size for v in views), key=lambda s: s[0] * s[1])
@@ -126,7 +129,9 @@ def collection_band(views, store: FeatureStore, pair_list, search: SearchConfig,
             small_ones.append((k, inputs, g, wide, views[j].depth_range))
         else:
             large_ones.append((k, views[i], views[j], store, wide, strict))
-    found = dict(imap(_confident, large_ones))
+    size = per_task(len(large_ones)) if per_task is not None and large_ones else max(1, len(large_ones))
+    tasks = [large_ones[k:k + size] for k in range(0, len(large_ones), size)]
+    found = {k: r for task in imap(_confident, tasks) for k, r in task}
     # the small pairs in one call on every core, the same matches as guided.match (the reverse test unused)
     pairs = small.many([small.SmallPair(x.points1, x.distances.a, x.points2, x.distances.b, g, s.tol, s.depth_range,
                                         d2) for _, x, g, s, d2 in small_ones], strict, strict.ratio, store.norm,
@@ -143,14 +148,16 @@ def collection_band(views, store: FeatureStore, pair_list, search: SearchConfig,
     return CollectionBand(tol, sigma, int(len(r)), used, fallback, tau)
 
 
-def _confident(item) -> tuple:
-    """``(sample number, signed distances to their segments)`` of the confident matches of one sampled
-    pair on the general path (a task for the runner's workers)."""
-    k, view1, view2, store, wide, strict = item
-    inputs, g, _, _ = pair_inputs(view1, view2, store)
-    inputs = _queries(inputs, spread_subset(inputs.points1, MAX_QUERIES))
-    conf = guided.match(inputs, g, wide, strict)[0]
-    return k, _residuals(g, inputs.points1[conf[:, 0]], inputs.points2[conf[:, 1]])
+def _confident(task) -> list:
+    """``[(sample number, signed distances to their segments)]`` of the confident matches of sampled pairs
+    on the general path (a task for the runner's workers)."""
+    out = []
+    for k, view1, view2, store, wide, strict in task:
+        inputs, g, _, _ = pair_inputs(view1, view2, store)
+        inputs = _queries(inputs, spread_subset(inputs.points1, MAX_QUERIES))
+        conf = guided.match(inputs, g, wide, strict)[0]
+        out.append((k, _residuals(g, inputs.points1[conf[:, 0]], inputs.points2[conf[:, 1]])))
+    return out
 
 
 def _residuals(g, points1: np.ndarray, points2: np.ndarray) -> np.ndarray:

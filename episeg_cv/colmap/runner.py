@@ -244,6 +244,12 @@ class Runner:
             return int(min(max(per, DASK_CHUNK_MIN), DASK_CHUNK_MAX))
         return THREAD_CHUNK if self._pool is not None and not inline else PROCESS_CHUNK
 
+    def spread(self, n_items: int) -> int:
+        """Items per task that give each worker about one task (for a few items that each cost about the
+        same: a task per item would pay a task's latency per item)."""
+        workers = self._workers if self._client is not None else self.cores
+        return max(1, -(-n_items // workers))
+
     def imap(self, fn, items, inline: bool = False):
         """``fn(item)`` for each item, yielded as they finish. ``inline``: in the calling thread (whose
         kernels the caller caps at :attr:`cores` with :meth:`limits`), unless a Dask cluster runs the items."""

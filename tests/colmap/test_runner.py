@@ -24,6 +24,18 @@ def test_task_sizes_in_this_process_and_threads():
         pool.close()
 
 
+def test_a_few_items_are_spread_one_task_per_worker():
+    one, pool = Runner(1), Runner(2)
+    try:
+        assert [one.spread(n) for n in (0, 1, 16)] == [1, 1, 16]
+        assert [pool.spread(n) for n in (0, 1, 2, 3, 16)] == [1, 1, 1, 2, 8]
+    finally:
+        pool.close()
+    r = Runner.__new__(Runner)  # a Dask runner's sizing, without a cluster
+    r._client, r._pool, r._workers, r.cores = object(), None, 4, 2
+    assert r.spread(16) == 4
+
+
 def test_workers_are_cores_and_every_core_by_default():
     cores = available_cores()
     assert 1 <= cores <= numba.config.NUMBA_NUM_THREADS
