@@ -519,3 +519,75 @@ def test_the_kernel_is_the_plain_algorithm(wrong, neighbourhood, min_angle):
     assert as_sets(got, got_views) == as_sets(want, want_views)
     if min_angle > 10:  # a quarter circle of 5 cameras: 30 degrees merges some of them
         assert any(len(np.flatnonzero(got == q)) > got_views[q] for q in set(got[got >= 0]))
+
+
+def _chained_graph(wrong, seed=3):
+    """A 6-view scene of 400 points whose false edges (a share ``wrong``) chain tracks into big components,
+    with tied ratios: the kernel's arguments."""
+    from episeg_cv.colmap.consensus import _normalised
+
+    views, _, kp = _scene(n_views=6, n_points=400, seed=seed)
+    rng = np.random.default_rng(8)
+    kp = kp + rng.uniform(-0.5, 0.5, kp.shape)
+    eu, ev, er = [], [], []
+    for i, j, p, _ in _all_pairs(6, 400, ratio=0.5):
+        q = p[:, 1].copy()
+        false = rng.random(len(p)) < wrong
+        q[false] = rng.integers(0, 400, int(false.sum()))
+        eu.append(i * 400 + p[:, 0])
+        ev.append(j * 400 + q)
+        er.append(np.round(rng.uniform(0.3, 0.89, len(p)), 2))
+    P, centers = _normalised(views)
+    return (P, centers, np.repeat(np.arange(6), 400), kp.reshape(-1, 2), np.concatenate(eu), np.concatenate(ev),
+            np.concatenate(er), 6, 2.0, np.cos(np.radians(1.5)), 24, 1000, 2)
+
+
+@pytest.mark.skipif(__import__("numba").config.NUMBA_NUM_THREADS < 2, reason="needs two numba threads")
+@pytest.mark.parametrize("wrong, big, read_cap, per_slot", [
+    (0.15, 4096, 8192, 4),  # the defaults: the chained component runs on both threads
+    (0.15, 1, 8192, 4),     # every component above its thread's share of the edges
+    (0.15, 1, 24, 4),       # room for few reads: most rounds run alone, first of their batch
+    (0.6, 1, 8192, 16),     # many false edges (seeds set aside too), big batches: many clashes
+    (0.3, 1, 8192, 1),      # batches of one round per slot
+])
+def test_big_components_in_speculative_batches_give_the_serial_result(monkeypatch, wrong, big, read_cap, per_slot):
+    """A big component's rounds run in speculative batches on every thread (``_big_component``: rounds applied
+    in ratio order as long as nothing a round read was taken by one applied before it): the groups, their views
+    and the counts must be those of the serial loop, whatever the batch, the room for reads and the graph."""
+    import numba
+
+    from episeg_cv.colmap import _consensus_kernel as kernel
+
+    args = _chained_graph(wrong)
+    serial = kernel.consensus(*args)
+    runs = []
+    real = kernel._big_component
+    monkeypatch.setattr(kernel, "_big_component", lambda *a: (runs.append(a[0]), real(*a))[1])
+    monkeypatch.setattr(kernel, "BIG_COMPONENT", big)
+    monkeypatch.setattr(kernel, "READ_CAP", read_cap)
+    monkeypatch.setattr(kernel, "ROUNDS_PER_SLOT", per_slot)
+    before = numba.get_num_threads()
+    numba.set_num_threads(2)
+    try:
+        par = kernel.consensus_parallel(*args, 8)
+    finally:
+        numba.set_num_threads(before)
+    assert runs, "no component ran in speculative batches"
+    assert serial[1].size > 100 and (serial[2][2] > 0 or wrong < 0.5)  # groups (and seeds set aside) compared
+    for a, b in zip(serial, par):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_ratio_order_is_a_stable_sort():
+    """The edges' order (``_by_ratio``, a radix sort of the ratios' bits): numpy's stable argsort, ties in input
+    order, zeros of both signs equal, negative and infinite values in place."""
+    from episeg_cv.colmap import _consensus_kernel as kernel
+
+    rng = np.random.default_rng(4)
+    special = np.array([0.0, -0.0, 0.25, 0.5, 1e-300, 5e-324, 0.9999, 1.0, 3.5, -2.0, np.inf, -np.inf])
+    for _ in range(300):
+        x = np.concatenate([rng.choice(special, rng.integers(0, 40)), rng.random(rng.integers(0, 40)),
+                            np.round(rng.random(rng.integers(0, 40)), 1)])
+        rng.shuffle(x)
+        np.testing.assert_array_equal(kernel._by_ratio(x), np.argsort(x, kind="stable"))
+    assert kernel._by_ratio(np.zeros(0)).shape == (0,)
