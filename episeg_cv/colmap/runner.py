@@ -116,24 +116,38 @@ def undo_malloc_trim() -> bool:
 
 
 def warm_up() -> None:
-    """Load the compiled matching kernels (from numba's cache) with one tiny match."""
+    """Load the compiled kernels a worker's tasks use (from numba's cache), with a few tiny matches: the
+    small-pair path and the index path of :func:`~.job.match_pairs` (pairs, both directions, the padding)
+    and of the band's sampled pairs (:func:`~.band.collection_band`), on read-only arrays as the feature
+    store's. Without them a worker's first large pair took 13-35 ms longer than the next ones."""
     import numpy as np
 
     from ..geometry import TwoViewGeometry
     from ..matching import guided, small
     from ..matching.config import AcceptRule, SearchConfig
+    from ..matching.distances import Distances
     from ..matching.filtering import keep_mask
+    from ..refinement import segment_residuals, spread_subset
 
     K = np.array([[100.0, 0, 50], [0, 100.0, 50], [0, 0, 1]])
     g = TwoViewGeometry(K, K, np.eye(3), [-1.0, 0, 0], image_size1=(100, 100), image_size2=(100, 100))
-    p = np.array([[60.0, 20.0], [40.0, 70.0]])
-    d = np.eye(2, 8, dtype=np.float32)
-    inputs = guided.MatchInputs.check(d, d, p, p, "l2")
-    pairs, _ = guided.match(inputs, g, SearchConfig(), AcceptRule())
-    guided.nearest(inputs, g, SearchConfig(), AcceptRule(), prefilter=True)
-    keep_mask(pairs, p, p, g, SearchConfig())
-    a, inf = inputs.distances.a, float("inf")  # the many-small-pairs kernel (serial: a worker runs one thread)
-    small.many([small.SmallPair(p, a, p, a, g, 2.0, (0.0, inf), (0.0, inf))], AcceptRule(), 1.0, "l2",
+    rng = np.random.default_rng(0)
+    rule, inf = AcceptRule(), float("inf")
+    for n in (2, 800):  # 800 x 800 keypoint pairs: above small.SMALL_PAIRS, the index path
+        p = rng.uniform(0, 100, (n, 2))
+        d = rng.random((n, 32)).astype(np.float32)
+        p.flags.writeable = d.flags.writeable = False  # as the feature store's arrays (numba types them apart)
+        inputs = guided.MatchInputs.check(d, d, p, p, "l2")
+        for tol in (2.0, 64.0):
+            pairs, _ = guided.match(inputs, g, SearchConfig(tol=tol), rule)
+            guided.nearest(inputs, g, SearchConfig(tol=tol), rule, prefilter=True)
+            keep_mask(pairs[:, ::-1], p, p, g.inverse(), SearchConfig(tol=tol))
+            segment_residuals(g, p[pairs[:, 0]], p[pairs[:, 1]])
+        rows = spread_subset(p, 256)  # the band's queries: a copy of some rows against the stored ones
+        sub = guided.MatchInputs(Distances(d[rows], d, "l2"), p[rows], p)
+        guided.match(sub, g, SearchConfig(tol=64.0), rule)
+    a = inputs.distances.a[:2]  # the many-small-pairs kernel (serial: a worker runs one thread)
+    small.many([small.SmallPair(p[:2], a, p[:2], a, g, 2.0, (0.0, inf), (0.0, inf))], rule, 1.0, "l2",
                lambda n2, n_pad: np.arange(n_pad))
 
 

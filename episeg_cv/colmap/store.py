@@ -106,13 +106,17 @@ class FeatureStore:
         return int(len(kp)), digest
 
     def _cached(self, view: View, sig: str) -> int | None:
-        """The number of keypoints of a fresh cache file of ``view``, or None."""
+        """The number of keypoints of a fresh cache file of ``view``, or None. The arrays read to check it
+        stay in this process's memory (:meth:`load` then needs no second read)."""
         path = self.path(view)
         if path.is_file():
             try:
+                mtime = path.stat().st_mtime_ns
                 with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as z:  # (our handle: closed on errors)
                     if str(z["signature"]) == sig and _complete(z, self.features):
-                        return int(len(z["keypoints"]))
+                        arrays = z["keypoints"], z["pinhole"], z["descriptors"]
+                        _remember(str(path), mtime, arrays)
+                        return int(len(arrays[0]))
             except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile):
                 pass  # unreadable or stale: recompute
         return None
@@ -183,14 +187,22 @@ def _load_features(path: str, mtime_ns: int) -> tuple[np.ndarray, np.ndarray, np
     except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile) as exc:
         raise ValueError(f"feature cache file {path!r} cannot be read ({type(exc).__name__}); "
                          "it was changed during the run") from None
-    des = out[2]
-    if des.dtype != np.uint8 and not np.isfinite(des).all():  # once per image: the matcher trusts them
+    if not _remember(path, mtime_ns, out):  # once per image: the matcher trusts them
         raise ValueError(f"feature cache file {path!r} holds descriptors that are NaN or inf")
-    for a in out:
+    return out
+
+
+def _remember(path: str, mtime_ns: int, arrays: tuple) -> bool:
+    """Keep ``(keypoints, pinhole, descriptors)`` of a cache file in memory, read-only (least recently used
+    first out beyond :data:`MEMORY_BUDGET`); False, and nothing kept, when a descriptor is NaN or inf."""
+    des = arrays[2]
+    if des.dtype != np.uint8 and not np.isfinite(des).all():
+        return False
+    for a in arrays:
         a.flags.writeable = False
     with _loaded_lock:
-        _loaded[key] = out
+        _loaded[(path, mtime_ns)] = arrays
         total = sum(a.nbytes for v in _loaded.values() for a in v)
         while len(_loaded) > 1 and total > MEMORY_BUDGET:
             total -= sum(a.nbytes for a in _loaded.popitem(last=False)[1])
-    return out
+    return True

@@ -386,6 +386,25 @@ def test_loaded_features_stay_in_memory_within_the_budget(folder, tmp_path, monk
     assert len(reads) == 2 * len(views) and len(store_module._loaded) <= 2
 
 
+def test_a_checked_cache_file_is_read_once(folder, tmp_path, monkeypatch):
+    """ensure() reads a fresh cache file whole to check it: load() then takes those arrays (a Dask worker
+    that checked an image in the features step matches it without reading it again)."""
+    from episeg_cv.colmap import store as store_module
+
+    views, _ = colmap.load_model(folder["model"])
+    store = FeatureStore(tmp_path / "cache", folder["images"], PRESETS["collection"].replace(max_features=300))
+    first = [store.ensure(v) for v in views]  # computed and written
+    monkeypatch.setattr(store_module, "_loaded", store_module.collections.OrderedDict())
+    reads = []
+    real_load = np.load
+    monkeypatch.setattr(store_module.np, "load", lambda *a, **k: reads.append(1) or real_load(*a, **k))
+    assert [store.ensure(v) for v in views] == first and len(reads) == len(views)  # checked: one read each
+    for v in views:
+        kp, pin, des = store.load(v)
+        assert len(kp) == first[views.index(v)][0] and not des.flags.writeable
+    assert len(reads) == len(views)  # and no second read
+
+
 # --------------------------------------------------------------------------------------
 # Pairs, overlap, depth ranges (hand-made views)
 # --------------------------------------------------------------------------------------
