@@ -37,7 +37,8 @@ RECIPE = """\
 The segment-tree peer is not part of this repository, which neither holds nor builds its code.
   source: github.com/LexaNagiBator228/Pixel-Accurate-Epipolar-Guided-Matching, commit b3c05a9
           (the tree, the angular hash and the brute force), built with its own build script for this
-          Python, without its -ffast-math flags (IEEE arithmetic, as ours; with them its tree lost candidates).
+          Python, without its -ffast-math flags (IEEE arithmetic, as ours; with them its tree lost candidates),
+          against pybind11 >= 2.12 (pip: Debian 12's 2.10 predates NumPy 2 and its module crashes) and Eigen 3.
   Then set EPISEG_PEER_PATH to the folder of its built epipolar_matching package.
 Its OpenMP threads are limited with threadpoolctl."""
 

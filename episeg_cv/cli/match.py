@@ -52,6 +52,9 @@ def add_parser(sub, parents) -> None:
     p.add_argument("--ratio", type=ratio_arg, default=None,
                    help=f"ratio test threshold (default: the matcher's, {AcceptRule().ratio})")
     p.add_argument("--cross-check", action="store_true", help="keep only mutual nearest neighbours both ways")
+    p.add_argument("--reject-repeats", action="store_true",
+                   help="with an estimated geometry (no pose): leave out the matches whose keypoints have a near-copy "
+                        "in their own image inside the same band (repeated texture; costs a few correct matches)")
     p.add_argument("--max-features", type=max_features_arg, default=4000, metavar="N", help="keypoints per image")
     p.add_argument("--out", default=None, metavar="FILE", help="matches file: .json, .npz or .csv")
     p.add_argument("--figure", type=image_file_arg, default=None, metavar="PNG", help="write a figure of the matches")
@@ -78,6 +81,9 @@ def run(args, console: Console) -> int:
                         "calibration with a pose, or use --constraint segment or line")
     if calib is None and search.bounded:
         raise UserError("--depth-range needs a calibration (without one, depth has no unit)")
+    if posed and args.reject_repeats:
+        raise UserError("--reject-repeats applies when the geometry is estimated from the images (a --calib "
+                        "without R and t, or none); this calibration holds a pose")
     prog = console.progress(4 + (args.figure is not None), "match")
     features = PRESETS["opencv"].replace(detector=args.detector, max_features=args.max_features)
     (p1, des1), (p2, des2) = detect(img1, features), detect(img2, features)
@@ -114,7 +120,7 @@ def run(args, console: Console) -> int:
             sizes.update(K1=calib.K1, K2=calib.K2)
         try:
             pairs, dist, est = match_without_pose(f1, f2, v1, v2, norm=features.norm, search=search, rule=rule,
-                                                  **sizes)
+                                                  reject_repeats=args.reject_repeats, **sizes)
         except GeometryEstimationError as exc:
             raise UserError(f"cannot estimate the geometry from the images: {exc}") from None
         geom, search = est.geometry, search.replace(tol=est.tol)
@@ -134,7 +140,7 @@ def run(args, console: Console) -> int:
             "settings": {"detector": args.detector, "max_features": args.max_features, "constraint": args.constraint,
                          "tol": args.tol if isinstance(args.tol, str) else float(args.tol),
                          "depth_range": [json_number(z) for z in search.depth_range],
-                         "cross_check": args.cross_check,
+                         "cross_check": args.cross_check, "reject_repeats": args.reject_repeats,
                          "ratio": None if args.constraint == "none" and args.cross_check else rule.ratio},
             "counts": {"keypoints1": len(p1), "keypoints2": len(p2), "matches": len(pairs), **counts}}
     written = []

@@ -258,6 +258,22 @@ def test_match_without_a_pose(tmp_path, with_intrinsics, method):
     assert ok.mean() > 0.95
 
 
+def test_match_without_a_pose_rejecting_repeats(tmp_path):
+    """--reject-repeats: match_without_pose(reject_repeats=True), a subset of the plain run's matches; refused
+    with a calibration that holds a pose (it applies to an estimated geometry)."""
+    out, plain = tmp_path / "r.json", tmp_path / "p.json"
+    r = run("match", IMG1, IMG2, "--max-features", "800", "--reject-repeats", "--out", out)
+    assert r.returncode == 0, r.stderr
+    assert run("match", IMG1, IMG2, "--max-features", "800", "--out", plain).returncode == 0
+    got, ref = json.loads(out.read_text()), json.loads(plain.read_text())
+    assert got["meta"]["settings"]["reject_repeats"] and not ref["meta"]["settings"]["reject_repeats"]
+    assert 0 < len(got["matches"]) <= len(ref["matches"])
+    assert {tuple(m) for m in got["matches"]} <= {tuple(m) for m in ref["matches"]}
+    r = run("match", IMG1, IMG2, "--calib", CALIB, "--reject-repeats", "--out", tmp_path / "x.json")
+    assert r.returncode == 1 and "--reject-repeats applies when the geometry is estimated" in r.stderr
+    _check_no_traceback(r)
+
+
 @pytest.mark.parametrize("args, message", [
     (["--tol", "bogus"], "expected a finite number of pixels >= 0 or 'auto'"),
     (["--tol", "-2"], "expected a finite number of pixels >= 0 or 'auto'"),
