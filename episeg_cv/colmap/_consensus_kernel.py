@@ -240,9 +240,9 @@ def _stable_by_key(items, keys, n_keys):
 def _by_ratio(er):
     """Edge indices sorted by ratio, ties in input order: a least-significant-digit radix sort (stable) of
     the ratios' bits, mapped so that their order as unsigned integers is the order of the numbers (the
-    sign bit set for positive ones and zeros, every bit flipped for negative ones). Digits of 16 bits; a digit that
-    is the same for every edge (most of the exponent) is skipped. 7x faster than numba's stable sort on
-    330k edges."""
+    sign bit set for positive ones and zeros, every bit flipped for negative ones). Digits of 16 bits; a
+    digit that is the same for every edge (most of the exponent) is skipped. 5 ms for 330k edges, where
+    numba's stable sort of each component took about 25 ms."""
     m = er.shape[0]
     keys = (er + 0.0).view(np.uint64)  # (+ 0.0: -0.0 becomes 0.0, equal as numbers)
     top = np.uint64(1) << np.uint64(63)
