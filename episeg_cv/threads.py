@@ -17,12 +17,24 @@ kernel, in whichever Python thread calls it (and numba's value restored
 after). Until :func:`set_num_threads` is called, the library follows numba's
 value of the calling thread (``numba.get_num_threads()``, all cores unless
 changed).
+
+**Idle threads sleep.** Numba's OpenMP threads start, on the library's first
+use of them, with OpenMP's passive wait policy (``OMP_WAIT_POLICY=PASSIVE``,
+set only while they start, and only when the environment sets no policy and
+nothing started them before): between kernels they sleep instead of
+spinning. With GNU OpenMP's default (spin, then sleep), a 10k ``match`` on
+two threads next to one busy process took 91-119 ms instead of 12-14 ms (its
+threads waited at every kernel's end for a thread the busy process had
+displaced); passive costs a wake-up per kernel, 0.8 ms of 7 ms on an idle
+2-core machine (``benchmarks/speed.py``, "Threads"). To keep spinning, set
+``OMP_WAIT_POLICY=ACTIVE`` before the first call.
 """
 
 from __future__ import annotations
 
 import contextlib
 import operator
+import os
 import threading
 
 import numba
@@ -45,6 +57,38 @@ _layer: str | None = None
 _launch_lock = threading.Lock()
 _blas = None
 _blas_lock = threading.Lock()
+_started = False
+_start_lock = threading.Lock()
+#: OpenMP's wait policy for numba's threads when the environment gives none (see the module's notes).
+WAIT_POLICY = "PASSIVE"
+
+
+def _numba_threads() -> int:
+    """``numba.get_num_threads()``; the first call starts numba's threads with :data:`WAIT_POLICY`
+    (GNU OpenMP reads ``OMP_WAIT_POLICY`` once, when numba loads it at that start)."""
+    global _started
+    if not _started:
+        with _start_lock:
+            if not _started:
+                _start_threads()
+                _started = True
+    return numba.get_num_threads()
+
+
+def _start_threads() -> None:
+    try:
+        numba.threading_layer()
+        return  # started before (by the program, or another library): its policy stays
+    except ValueError:
+        pass
+    if "OMP_WAIT_POLICY" in os.environ:
+        numba.get_num_threads()
+        return
+    os.environ["OMP_WAIT_POLICY"] = WAIT_POLICY
+    try:
+        numba.get_num_threads()
+    finally:
+        os.environ.pop("OMP_WAIT_POLICY", None)
 
 
 def set_num_threads(n: int | None) -> None:
@@ -95,7 +139,7 @@ def get_num_threads() -> int:
     >>> episeg_cv.get_num_threads() >= 1
     True
     """
-    n = numba.get_num_threads() if _requested is None else _requested
+    n = _numba_threads() if _requested is None else _requested
     limit = getattr(_this_thread, "limit", None)
     return n if limit is None else min(n, limit)
 
@@ -163,7 +207,7 @@ def call_parallel(kernel, *args):
     serialised by a lock. The ``omp`` and ``tbb`` layers take concurrent launches.
     """
     n = get_num_threads()
-    before = numba.get_num_threads()
+    before = _numba_threads()
     with (_launch_lock if _serialise_launches() else contextlib.nullcontext()):
         if before == n:
             return _launch(kernel, args)

@@ -278,3 +278,39 @@ def test_an_interrupt_several_system_errors_deep_is_an_interrupt():
     with pytest.raises(Terminated):
         threads.run(serial, None, 1, 0)
     assert interrupt_in(SystemError("a real internal error")) is None and interrupt_in(None) is None
+
+
+def _omp_policy_shown(env_policy):
+    """The spin count GNU OpenMP reports (``OMP_DISPLAY_ENV=VERBOSE``) when a fresh process first uses the
+    library's threads (0: passive; 300000 when no policy is set; more for active), and the process's
+    ``OMP_WAIT_POLICY`` after that."""
+    import os
+    import subprocess
+    import sys
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "NUMBA_THREADING_LAYER")}
+    env["OMP_DISPLAY_ENV"] = "VERBOSE"
+    if env_policy is not None:
+        env["OMP_WAIT_POLICY"] = env_policy
+    code = ("import os, numba, episeg_cv; episeg_cv.get_num_threads(); "
+            "print('LAYER', numba.threading_layer()); print('AFTER', os.environ.get('OMP_WAIT_POLICY'))")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    text = out.stdout + out.stderr
+    if "LAYER omp" not in text:
+        pytest.skip("numba's threading layer here is not OpenMP")
+    shown = [line.split("=", 1)[1].strip().strip("'") for line in text.splitlines()
+             if line.strip().startswith("GOMP_SPINCOUNT")]
+    after = [line.split(" ", 1)[1] for line in text.splitlines() if line.startswith("AFTER")]
+    return shown, after
+
+
+def test_numba_threads_start_passive_and_the_environment_is_left_as_it_was():
+    shown, after = _omp_policy_shown(None)
+    assert shown == ["0"]
+    assert after == ["None"]
+
+
+def test_a_wait_policy_in_the_environment_is_kept():
+    shown, after = _omp_policy_shown("ACTIVE")
+    assert int(shown[0]) > 300000
+    assert after == ["ACTIVE"]
