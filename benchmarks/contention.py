@@ -2,7 +2,7 @@
 
 Usage::
 
-    python benchmarks/contention.py [--calls N] [--out DIR]
+    python benchmarks/contention.py [--calls N] [--n N] [--image-size WxH] [--out DIR]
 
 The pair of ``benchmarks/speed.py`` at n = 10k (pose ``forward``, 1600 x 1200 render, the 10k strongest
 SIFT keypoints of each image) is matched by ``SegmentMatcher.match`` in fresh child processes, one per
@@ -42,15 +42,16 @@ LOADS = ("idle", "one busy process")
 BUSY = "while True: pass"
 
 
-def make_input(path: Path) -> None:
-    """The 10k forward pair of ``speed.py``, saved for the children (geometry pickled with the arrays)."""
+def make_input(path: Path, n: int = N, image_size=IMAGE_SIZE) -> None:
+    """The forward pair of ``speed.py`` (``n`` strongest keypoints), saved for the children (geometry pickled
+    with the arrays)."""
     import pickle
 
     import speed
 
-    pair, kp1, d1, kp2, d2 = speed.setup(POSE, IMAGE_SIZE)
-    kp1, d1, _ = speed.strongest(kp1, d1, N)
-    kp2, d2, _ = speed.strongest(kp2, d2, N)
+    pair, kp1, d1, kp2, d2 = speed.setup(POSE, image_size)
+    kp1, d1, _ = speed.strongest(kp1, d1, n)
+    kp2, d2, _ = speed.strongest(kp2, d2, n)
     cols = lambda kps: np.array([(*k.pt, k.size, k.angle, k.response, k.octave) for k in kps])  # noqa: E731
     with open(path, "wb") as fh:
         pickle.dump({"geometry": pair.geometry, "k1": cols(kp1), "k2": cols(kp2), "d1": d1, "d2": d2}, fh)
@@ -65,6 +66,7 @@ def child(path: str, calls: int) -> dict:
     import episeg_cv
     from episeg_cv import SegmentMatcher
 
+    episeg_cv.get_num_threads()  # numba's threads start here, as at the library's first parallel kernel
     with open(path, "rb") as fh:
         data = pickle.load(fh)
     kps = [[cv2.KeyPoint(float(x), float(y), float(s), float(a), float(r), int(o)) for x, y, s, a, r, o in k]
@@ -132,7 +134,8 @@ def write(results: dict, meta: dict, command: str, out: Path, seconds: float) ->
         f"{', with uncommitted changes in episeg_cv/' if meta.get('dirty') else ''}). Raw numbers in "
         "`contention.json`.",
         "",
-        "`SegmentMatcher.match` at n = 10k (pose `forward`, the pair of `speed.py`), in a fresh process per row; "
+        f"`SegmentMatcher.match` at n = {results['n']} (pose `forward`, {results['image_size']} render, the pair "
+        "of `speed.py`), in a fresh process per row; "
         f"{results['calls']} calls per thread count, interleaved; ms, median (90th percentile); `x BF`: "
         "`cv2.BFMatcher.knnMatch(k=2)` at the same thread count and load, divided by the median. "
         "`spin count`: what GNU OpenMP reported for the row (`OMP_DISPLAY_ENV=VERBOSE`; 0 = passive).",
@@ -162,6 +165,8 @@ def write(results: dict, meta: dict, command: str, out: Path, seconds: float) ->
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--calls", type=int, default=40, help="calls per thread count in each row (default 40)")
+    ap.add_argument("--n", type=int, default=N, help=f"keypoints per image (default {N})")
+    ap.add_argument("--image-size", default="x".join(map(str, IMAGE_SIZE)), help="render size WxH (default 1600x1200)")
     ap.add_argument("--out", type=Path, default=RESULTS, help="output directory (default benchmarks/results)")
     ap.add_argument("--child", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
@@ -174,15 +179,18 @@ def main(argv=None) -> int:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "pair.pkl"
-        make_input(path)
+        size = tuple(int(v) for v in args.image_size.lower().split("x"))
+        make_input(path, args.n, size)
         for load in LOADS:
             for policy, env in POLICIES.items():
                 times = run_cell(path, args.calls, env, load != "idle")
                 rows.append({"policy": policy, "load": load, "times": times})
                 print(policy, load, {k: round(v["median_ms"], 1) for k, v in times.items() if k in "12"}, flush=True)
-    command = "python benchmarks/contention.py" + (f" --calls {args.calls}" if args.calls != 40 else "")
+    command = "python benchmarks/contention.py" + (f" --calls {args.calls}" if args.calls != 40 else "") + \
+        (f" --n {args.n}" if args.n != N else "") + (f" --image-size {args.image_size}" if size != IMAGE_SIZE else "")
     args.out.mkdir(parents=True, exist_ok=True)
-    write({"calls": args.calls, "rows": rows}, meta, command, args.out, time.perf_counter() - t0)
+    write({"calls": args.calls, "n": args.n, "image_size": "x".join(map(str, size)), "rows": rows}, meta, command,
+          args.out, time.perf_counter() - t0)
     print(shlex.quote(str(args.out / "contention.md")))
     return 0
 
