@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from ..distortion import undistort_points
@@ -12,7 +13,9 @@ from ..estimation import GeometryEstimationError, match_without_pose
 from ..features import PRESETS
 from ..io.matches import FORMAT, FORMAT_VERSION, json_number, write_matches
 from ..matching import AcceptRule, SearchConfig, estimate_band
-from .args import Formatter, image_file_arg, max_features_arg, not_an_input, depth, depth_range_arg, ratio_arg, tol_arg
+from ..threads import set_num_threads
+from .args import (Formatter, depth, depth_range_arg, image_file_arg, max_features_arg, not_an_input, positive_int,
+                   ratio_arg, tol_arg)
 from .common import MAX_LINES, detect, image_size, labels_of, load_calib, read_image, run_matching, versions
 from .console import Console, UserError
 
@@ -56,6 +59,9 @@ def add_parser(sub, parents) -> None:
                    help="with an estimated geometry (no pose): leave out the matches whose keypoints have a near-copy "
                         "in their own image inside the same band (repeated texture; costs a few correct matches)")
     p.add_argument("--max-features", type=max_features_arg, default=4000, metavar="N", help="keypoints per image")
+    p.add_argument("--threads", type=positive_int, default=None, metavar="N",
+                   help="threads of the detector (cv2.setNumThreads) and of the matcher (episeg_cv.set_num_threads); "
+                        "default: every core. The matches are the same for every count")
     p.add_argument("--out", default=None, metavar="FILE", help="matches file: .json, .npz or .csv")
     p.add_argument("--figure", type=image_file_arg, default=None, metavar="PNG", help="write a figure of the matches")
     p.set_defaults(func=run)
@@ -73,6 +79,9 @@ def run(args, console: Console) -> int:
         not_an_input(path, [args.image1, args.image2, args.calib], option)
     search = SearchConfig(tol=args.tol, depth_range=depth_range_arg(args.depth_range), constraint=args.constraint)
     rule = AcceptRule(cross_check=args.cross_check, **({} if args.ratio is None else {"ratio": args.ratio}))
+    if args.threads is not None:
+        cv2.setNumThreads(args.threads)
+        set_num_threads(args.threads)
     img1, img2 = read_image(args.image1), read_image(args.image2)
     calib = load_calib(args.calib, img1, img2, console) if args.calib is not None else None
     posed = calib is not None and calib.has_pose
@@ -141,6 +150,7 @@ def run(args, console: Console) -> int:
                          "tol": args.tol if isinstance(args.tol, str) else float(args.tol),
                          "depth_range": [json_number(z) for z in search.depth_range],
                          "cross_check": args.cross_check, "reject_repeats": args.reject_repeats,
+                         "threads": args.threads,
                          "ratio": None if args.constraint == "none" and args.cross_check else rule.ratio},
             "counts": {"keypoints1": len(p1), "keypoints2": len(p2), "matches": len(pairs), **counts}}
     written = []

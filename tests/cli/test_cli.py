@@ -81,6 +81,21 @@ def test_match_json(tmp_path, detector, constraint, extra):
     assert cv2.imread(str(fig)) is not None
 
 
+def test_match_threads_gives_the_same_matches_and_is_recorded(tmp_path):
+    outs = []
+    for extra in ([], ["--threads", "1"], ["--threads", "2"]):
+        out = tmp_path / f"m{len(outs)}.npz"
+        r = run("match", IMG1, IMG2, "--calib", CALIB, "--max-features", "3000", "--out", out, "-q", *extra)
+        assert r.returncode == 0, r.stderr
+        outs.append(read_matches(out))
+    for o in outs[1:]:
+        np.testing.assert_array_equal(o["matches"], outs[0]["matches"])
+    assert [o["meta"]["settings"]["threads"] for o in outs] == [None, 1, 2]
+    r = run("match", IMG1, IMG2, "--calib", CALIB, "--threads", "0")
+    assert r.returncode == 2 and "--threads" in r.stderr and "positive integer" in r.stderr
+    _check_no_traceback(r)
+
+
 def test_match_npz_and_csv_hold_the_same_matches(tmp_path):
     for name in ("m.npz", "m.csv", "m.json"):
         r = run("match", IMG1, IMG2, "--calib", CALIB, "--max-features", "600", "--out", tmp_path / name, "-q")
