@@ -342,7 +342,8 @@ def run_parallel(model, image_dir, work: Path, repeats: int, dask: bool) -> dict
     one = out["workers=1"]["pairs_per_second_median"]
     for e in out.values():
         e["speed_up"] = e["pairs_per_second_median"] / one if one else float("nan")
-    return {"runners": out, "n_pairs": len(reference)}
+    from _gil import python_share  # (benchmarks/ is on sys.path)
+    return {"runners": out, "n_pairs": len(reference), "gil": python_share(model, image_dir, work, cache)}
 
 
 def _pct(a, b):
@@ -445,6 +446,15 @@ def markdown(res: dict) -> list:
                  "`workers=2` it shows how many cores the two threads actually got (near 1.0 on a busy machine: "
                  "then no speed-up can show). Dask's workers are other processes, not counted there.")
         L.append("")
+        G = P.get("gil")
+        if G:
+            L.append(f"**Threads stop near {G['ceiling']:.1f}x, on any number of cores.** Matched again on one "
+                     f"thread, the {G['pairs']} pairs took {G['cpu_s']:.2f} s of CPU, {G['kernels_s']:.2f} s of it "
+                     f"inside the compiled kernels (each wrapped to sum its CPU time, `benchmarks/_gil.py`): "
+                     f"{100 * G['python_share']:.0f} % is Python between them, which holds the GIL, so N threads "
+                     f"run the pairs at most 1 / {G['python_share']:.2f} = {G['ceiling']:.1f}x faster than one. "
+                     "Dask's worker processes do not share a GIL.")
+            L.append("")
         L.append("Goals: `--workers 2` >= 1.6x one worker, Dask `local:2` >= 1.4x. " + "; ".join(
             f"{label}: {e['speed_up']:.2f}x ({'met' if e['speed_up'] >= need else 'not met'})"
             for label, e, need in ((k, v, 1.6 if k == "workers=2" else 1.4) for k, v in P["runners"].items()
