@@ -81,14 +81,14 @@ def _start_threads() -> None:
         return  # started before (by the program, or another library): its policy stays
     except ValueError:
         pass
-    if "OMP_WAIT_POLICY" in os.environ:
-        numba.get_num_threads()
-        return
-    os.environ["OMP_WAIT_POLICY"] = WAIT_POLICY
+    ours = "OMP_WAIT_POLICY" not in os.environ  # a policy the environment sets is kept
+    if ours:
+        os.environ["OMP_WAIT_POLICY"] = WAIT_POLICY
     try:
         numba.get_num_threads()
     finally:
-        os.environ.pop("OMP_WAIT_POLICY", None)
+        if ours:
+            os.environ.pop("OMP_WAIT_POLICY", None)
 
 
 def set_num_threads(n: int | None) -> None:
