@@ -161,7 +161,9 @@ def clip_tol(sigma: float, options: AutoTol, image_size2) -> float:
     return float(np.clip(options.k * sigma, lo, hi)) if np.isfinite(sigma) else float(np.clip(2 * lo, lo, hi))
 
 
-def _refine(geometry, p1, p2, pairs, options) -> PoseRefinement:
+def refine_on(geometry, p1, p2, pairs, options) -> PoseRefinement:
+    """Step 2: :func:`~episeg_cv.refinement.refine` on at most ``options.max_refine_matches`` of ``pairs`` spread
+    over image 1, with the geometry's covariance (or ``options.prior_deg``) as the prior."""
     x1, x2 = p1[pairs[:, 0]], p2[pairs[:, 1]]
     sub = spread_subset(x1, options.max_refine_matches)
     return refine(geometry, x1[sub], x2[sub], prior_deg=options.prior_deg, covariance=geometry.covariance)
@@ -201,7 +203,7 @@ def estimate_from_pairs(pairs: np.ndarray, p1: np.ndarray, p2: np.ndarray, geome
     if not (options.refine and isinstance(geometry, TwoViewGeometry)):
         sigma = robust_sigma(segment_residuals(geometry, x1, x2))
         return BandEstimate(clip_tol(sigma, options, size2), sigma, _plain(geometry), True, pairs, unguided=unguided)
-    ref = _refine(geometry, p1, p2, pairs, options)
+    ref = refine_on(geometry, p1, p2, pairs, options)
     keep, sigma = _keep_given(geometry, ref, x1, x2, options)
     if keep:
         return BandEstimate(clip_tol(sigma, options, size2), sigma, _plain(geometry), True, pairs, unguided=unguided)
@@ -219,13 +221,13 @@ def _confident(inputs: MatchInputs, geometry: EpipolarGeometry, conf: np.ndarray
         conf = _union(conf, unguided_mutual(inputs.distances, options.strict_ratio))
     if not (options.refine and isinstance(geometry, TwoViewGeometry)) or len(conf) < options.min_matches:
         return conf, None, unguided
-    ref = _refine(geometry, p1, p2, conf, options)
+    ref = refine_on(geometry, p1, p2, conf, options)
     if not unguided and options.unguided_pass == "auto":
         support = np.abs(segment_residuals(ref.geometry, p1[conf[:, 0]], p2[conf[:, 1]]))
         if (support <= max(options.k * ref.sigma, options.tol_min)).sum() < options.min_support:
             unguided = True
             conf = _union(conf, unguided_mutual(inputs.distances, options.strict_ratio))
-            ref = _refine(geometry, p1, p2, conf, options)
+            ref = refine_on(geometry, p1, p2, conf, options)
     return conf, ref, unguided
 
 
@@ -248,7 +250,7 @@ def estimate(inputs: MatchInputs, geometry: EpipolarGeometry, search: SearchConf
         conf2 = guided.match(inputs, ref.geometry, search.replace(tol=b2), strict, rng, bucket_size)[0]
         if len(conf2) >= options.min_matches:
             conf = conf2
-            ref = _refine(geometry, p1, p2, conf, options)
+            ref = refine_on(geometry, p1, p2, conf, options)
             keep, sigma = _keep_given(geometry, ref, p1[conf[:, 0]], p2[conf[:, 1]], options)
     tol = clip_tol(sigma, options, geometry.image_size2)
     if keep:
@@ -257,7 +259,7 @@ def estimate(inputs: MatchInputs, geometry: EpipolarGeometry, search: SearchConf
     final = guided.match(inputs, ref.geometry, search.replace(tol=tol), AcceptRule(pad=strict.pad), rng,
                          bucket_size)[0]
     if len(final) >= options.min_matches:
-        ref = _refine(geometry, p1, p2, final, options)
+        ref = refine_on(geometry, p1, p2, final, options)
         s5 = robust_sigma(segment_residuals(ref.geometry, p1[conf[:, 0]], p2[conf[:, 1]]))
         if np.isfinite(s5):
             sigma = s5
@@ -292,7 +294,7 @@ def posterior(inputs: MatchInputs, geometry: TwoViewGeometry, search: SearchConf
     s1 = search.replace(tol=_noise(search, ref))
     conf = banded.match(inputs, first, banded.bands_for(first, p1, s1), s1, strict, rng, bucket_size)[0]
     if len(conf) >= options.min_matches:
-        ref = _refine(geometry, p1, p2, conf, options)
+        ref = refine_on(geometry, p1, p2, conf, options)
     return ref.geometry.with_covariance(ref.covariance), _noise(search, ref)
 
 

@@ -253,7 +253,7 @@ def test_a_poor_refinement_on_the_confident_matches_is_redone_on_the_bands_match
     import dataclasses
     from episeg_cv.matching import auto
     pair, d1, d2, p1, p2, gt = lateral
-    real, calls = auto._refine, []
+    real, calls = auto.refine_on, []
 
     def poor(geometry, q1, q2, pairs, options):
         ref = real(geometry, q1, q2, pairs, options)
@@ -264,7 +264,7 @@ def test_a_poor_refinement_on_the_confident_matches_is_redone_on_the_bands_match
         return dataclasses.replace(ref, geometry=off, sigma=robust_sigma(segment_residuals(
             off, q1[pairs[:, 0]], q2[pairs[:, 1]])))
 
-    monkeypatch.setattr(auto, "_refine", poor)
+    monkeypatch.setattr(auto, "refine_on", poor)
     est = estimate_band(d1, d2, p1, p2, perturb(pair.geometry, 1.0, 5.0, seed=7))
     assert len(calls) == 3 and calls[2] > calls[1]  # step 5 ran, on more matches than the strict passes
     assert not est.pose_kept and est.tol == 2.0
