@@ -18,16 +18,19 @@ after). Until :func:`set_num_threads` is called, the library follows numba's
 value of the calling thread (``numba.get_num_threads()``, all cores unless
 changed).
 
-**Idle threads sleep.** Numba's OpenMP threads start, on the library's first
-use of them, with OpenMP's passive wait policy (``OMP_WAIT_POLICY=PASSIVE``,
-set only while they start, and only when the environment sets no policy and
-nothing started them before): between kernels they sleep instead of
-spinning. With GNU OpenMP's default (spin, then sleep), a 10k ``match`` on
-two threads next to one busy process took 91-119 ms instead of 12-14 ms (its
-threads waited at every kernel's end for a thread the busy process had
-displaced); passive costs a wake-up per kernel, 0.8 ms of 7 ms on an idle
-2-core machine (``benchmarks/speed.py``, "Threads"). To keep spinning, set
-``OMP_WAIT_POLICY=ACTIVE`` before the first call.
+**Idle threads spin briefly, then sleep.** Numba's OpenMP threads start, on
+the library's first use of them, with GNU OpenMP's spin count set to
+:data:`SPIN_COUNT` (``GOMP_SPINCOUNT``, set only while they start, and only
+when the environment sets neither it nor ``OMP_WAIT_POLICY`` and nothing
+started them before). GNU OpenMP's own default spins 300000 times before a
+waiting thread sleeps: next to one busy process, a 10k ``match`` on two
+threads then took 2-10x longer than on one, because at the end of every kernel
+a thread spun on the core that the thread it waited for needed. Sleeping at
+once (``OMP_WAIT_POLICY=PASSIVE``) is the most robust there, but costs a
+wake-up of about 50 us per parallel loop: the track consensus, which runs
+thousands of short parallel loops, then ran no faster on two threads than on
+one. A short spin keeps both (``benchmarks/results/contention.md``). Set
+either variable yourself before the first call to choose otherwise.
 """
 
 from __future__ import annotations
@@ -59,13 +62,15 @@ _blas = None
 _blas_lock = threading.Lock()
 _started = False
 _start_lock = threading.Lock()
-#: OpenMP's wait policy for numba's threads when the environment gives none (see the module's notes).
-WAIT_POLICY = "PASSIVE"
+#: GNU OpenMP's spin count for numba's threads when the environment sets no wait policy (see the module's
+#: notes): a waiting thread spins this many times (tens of microseconds), then sleeps.
+SPIN_COUNT = 3000
+_OMP_WAIT = ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")
 
 
 def _numba_threads() -> int:
-    """``numba.get_num_threads()``; the first call starts numba's threads with :data:`WAIT_POLICY`
-    (GNU OpenMP reads ``OMP_WAIT_POLICY`` once, when numba loads it at that start)."""
+    """``numba.get_num_threads()``; the first call starts numba's threads with :data:`SPIN_COUNT`
+    (GNU OpenMP reads ``GOMP_SPINCOUNT`` once, when numba loads it at that start)."""
     global _started
     if not _started:
         with _start_lock:
@@ -81,14 +86,14 @@ def _start_threads() -> None:
         return  # started before (by the program, or another library): its policy stays
     except ValueError:
         pass
-    ours = "OMP_WAIT_POLICY" not in os.environ  # a policy the environment sets is kept
+    ours = not any(k in os.environ for k in _OMP_WAIT)  # a policy the environment sets is kept
     if ours:
-        os.environ["OMP_WAIT_POLICY"] = WAIT_POLICY
+        os.environ["GOMP_SPINCOUNT"] = str(SPIN_COUNT)
     try:
         numba.get_num_threads()
     finally:
         if ours:
-            os.environ.pop("OMP_WAIT_POLICY", None)
+            os.environ.pop("GOMP_SPINCOUNT", None)
 
 
 def set_num_threads(n: int | None) -> None:

@@ -280,19 +280,18 @@ def test_an_interrupt_several_system_errors_deep_is_an_interrupt():
     assert interrupt_in(SystemError("a real internal error")) is None and interrupt_in(None) is None
 
 
-def _omp_policy_shown(env_policy):
-    """The spin count GNU OpenMP reports (``OMP_DISPLAY_ENV=VERBOSE``) when a fresh process first uses the
-    library's threads (0: passive; 300000 when no policy is set; more for active), and the process's
-    ``OMP_WAIT_POLICY`` after that."""
+def _omp_policy_shown(env):
+    """The spin count GNU OpenMP reports (``OMP_DISPLAY_ENV=VERBOSE``) when a fresh process, with ``env``
+    added to its environment, first uses the library's threads (0: passive; 300000 when nothing is set;
+    more for active), and the process's ``GOMP_SPINCOUNT`` after that."""
     import os
     import subprocess
     import sys
-    env = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "NUMBA_THREADING_LAYER")}
+    env = {**{k: v for k, v in os.environ.items()
+                 if k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT", "NUMBA_THREADING_LAYER")}, **env}
     env["OMP_DISPLAY_ENV"] = "VERBOSE"
-    if env_policy is not None:
-        env["OMP_WAIT_POLICY"] = env_policy
     code = ("import os, numba, episeg_cv; episeg_cv.get_num_threads(); "
-            "print('LAYER', numba.threading_layer()); print('AFTER', os.environ.get('OMP_WAIT_POLICY'))")
+            "print('LAYER', numba.threading_layer()); print('AFTER', os.environ.get('GOMP_SPINCOUNT'))")
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     text = out.stdout + out.stderr
@@ -304,13 +303,17 @@ def _omp_policy_shown(env_policy):
     return shown, after
 
 
-def test_numba_threads_start_passive_and_the_environment_is_left_as_it_was():
-    shown, after = _omp_policy_shown(None)
-    assert shown == ["0"]
+def test_numba_threads_spin_briefly_and_the_environment_is_left_as_it_was():
+    shown, after = _omp_policy_shown({})
+    assert shown == [str(threads.SPIN_COUNT)]
     assert after == ["None"]
 
 
-def test_a_wait_policy_in_the_environment_is_kept():
-    shown, after = _omp_policy_shown("ACTIVE")
-    assert int(shown[0]) > 300000
-    assert after == ["ACTIVE"]
+@pytest.mark.parametrize("env, check", [
+    ({"OMP_WAIT_POLICY": "ACTIVE"}, lambda n: n > 300000),
+    ({"OMP_WAIT_POLICY": "PASSIVE"}, lambda n: n == 0),
+    ({"GOMP_SPINCOUNT": "12345"}, lambda n: n == 12345),
+])
+def test_a_wait_policy_in_the_environment_is_kept(env, check):
+    shown, _ = _omp_policy_shown(env)
+    assert check(int(shown[0])), shown
