@@ -27,7 +27,7 @@ def _find(parent, x):
 
 
 @nb.njit(cache=True, nogil=True)
-def _triangulate(P, node_image, node_xy, nodes, count, out):
+def triangulate_point(P, node_image, node_xy, nodes, count, out):
     """Least-squares point of ``count`` observations (linear, inhomogeneous, rows normalised).
 
     Each observation gives two rows ``x P3 - P1`` and ``y P3 - P2`` of ``A [X; 1] = 0``,
@@ -192,7 +192,7 @@ def _window(e0, adj_ptr, adj, eu, ev, rank, alive, dead, hops, limit, max_seeds,
 
 
 @nb.njit(cache=True, nogil=True)
-def _distinct_views(node_image, centers, X, nodes, count, cos_min_angle, dirs):
+def distinct_views(node_image, centers, X, nodes, count, cos_min_angle, dirs):
     """How many of the observations ``nodes[:count]`` see the point ``X`` from directions at least the
     minimum angle apart (greedy, in order): views whose rays meet at a smaller angle count once."""
     n = 0
@@ -369,7 +369,7 @@ def _round(e0, P, centers, node_image, node_xy, eu, ev, tau, cos_min_angle, max_
             continue
         pair[0] = eu[k]
         pair[1] = ev[k]
-        if not _triangulate(P, node_image, node_xy, pair, 2, X):
+        if not triangulate_point(P, node_image, node_xy, pair, 2, X):
             bound[k] = 0.0  # (the same two rays every round)
             continue
         stamp += 1
@@ -385,7 +385,7 @@ def _round(e0, P, centers, node_image, node_xy, eu, ev, tau, cos_min_angle, max_
     if best_seed < 0:
         return 0, 0, n_seeds, n_reads, stamp
     count = best_count
-    if _triangulate(P, node_image, node_xy, best_inl, best_count, X):
+    if triangulate_point(P, node_image, node_xy, best_inl, best_count, X):
         stamp += 1
         cnt, _, tail = _support(P, node_image, node_xy, X, eu[best_seed], ev[best_seed], adj_ptr, adj, eu, ev, alive,
                                 tau, stamp, mark, queue, best_err, best_node, touched, again)
@@ -393,12 +393,12 @@ def _round(e0, P, centers, node_image, node_xy, eu, ev, tau, cos_min_angle, max_
         if cnt >= 2:
             best_inl[:cnt] = again[:cnt]
             count = cnt
-            _triangulate(P, node_image, node_xy, best_inl, count, X)
+            triangulate_point(P, node_image, node_xy, best_inl, count, X)
     else:
         pair[0] = eu[best_seed]
         pair[1] = ev[best_seed]
-        _triangulate(P, node_image, node_xy, pair, 2, X)
-    views = _distinct_views(node_image, centers, X, best_inl, count, cos_min_angle, dirs)
+        triangulate_point(P, node_image, node_xy, pair, 2, X)
+    views = distinct_views(node_image, centers, X, best_inl, count, cos_min_angle, dirs)
     return count, views, n_seeds, n_reads, stamp
 
 
@@ -430,7 +430,7 @@ def _components(c0, c1, skip, P, centers, node_image, node_xy, eu, ev, er, n_ima
 
     A group of component ``c`` is numbered ``comp_node[c] + local`` (a component has fewer groups than
     nodes); :func:`_number_groups` renumbers them in component order. ``slot_views`` holds each group's
-    distinct views (:func:`_distinct_views`), ``comp_groups[c]`` the number of groups,
+    distinct views (:func:`distinct_views`), ``comp_groups[c]`` the number of groups,
     ``comp_unsupported[c]`` the seeds that found no support."""
     max_nodes = 1
     for c in range(c0, c1):

@@ -33,7 +33,7 @@ from ..interrupts import terminate_as_interrupt
 from ..matching import small
 from ..matching.config import AcceptRule, AutoTol, SearchConfig, resolve
 from .band import collection_band, sample_pairs
-from .consensus import TrackConsensus, verify_tracks
+from .consensus import TrackConsensus, verify_and_complete, verify_tracks
 from .database import (check_database_path, check_resumable, create_database, database_lock, pair_unchanged,
                        write_pair, write_pairs)
 from .dbfeatures import SOURCE, DatabaseFeatureStore, check_feature_database, database_views, prepare_feature_database
@@ -263,7 +263,10 @@ def match_model(model, image_dir, database, *, pairs=None, neighbors=None,
         ``"tracks"`` (default): the candidates of every pair, up to a looser
         ratio, verified together with the known poses before anything is
         written (:func:`~episeg_cv.colmap.verify_tracks`; a
-        :class:`~episeg_cv.colmap.TrackConsensus` sets its parameters).
+        :class:`~episeg_cv.colmap.TrackConsensus` sets its parameters; with
+        ``complete=True`` the groups of too few views are completed by
+        projection and the new matches written too:
+        :mod:`~episeg_cv.colmap.completion`).
         ``"pairs"``: each pair's matches under ``rule`` alone, written as they
         come back.
     **options
@@ -483,20 +486,30 @@ class _Run:
                 samples += res.samples
                 self.tick("pairs", n, len(todo))
             t1 = time.perf_counter()
-            keep, stats = verify_tracks(views, [(i, j, r.inliers, r.ratios) for (i, j), r in zip(todo, results)],
-                                        lambda k: self.store.pinhole(views[k]), self.rule.ratio, self.search.tol,
-                                        self.consensus)
+            candidates = [(i, j, r.inliers, r.ratios) for (i, j), r in zip(todo, results)]
+            pinhole = (lambda k: self.store.pinhole(views[k]))
+            if self.consensus.complete:
+                keep, added, stats = verify_and_complete(views, candidates, pinhole,
+                                                         lambda k: self.store.load(views[k])[2], self.rule.ratio,
+                                                         self.search.tol, self.consensus, self.store.norm)
+            else:
+                keep, stats = verify_tracks(views, candidates, pinhole, self.rule.ratio, self.search.tol,
+                                            self.consensus)
+                added = [None] * len(keep)
             report.seconds_verify = time.perf_counter() - t1
             report.verify.update(stats)
             db = pycolmap.Database.open(str(self.path))
             try:
                 block = []
-                for n, ((i, j), res, k) in enumerate(zip(todo, results, keep), 1):
-                    inliers = res.inliers[k]
-                    if (i, j) in done and pair_unchanged(db, views[i], views[j], res.matches, inliers):
+                for n, ((i, j), res, k, new) in enumerate(zip(todo, results, keep, added), 1):
+                    inliers, matches = res.inliers[k], res.matches
+                    if new is not None and len(new):  # the completion's matches (:mod:`.completion`)
+                        inliers = np.concatenate([inliers, new.astype(np.uint32)])
+                        matches = np.concatenate([matches, new.astype(np.uint32)])
+                    if (i, j) in done and pair_unchanged(db, views[i], views[j], matches, inliers):
                         report.n_skipped += 1
                     else:
-                        block.append((views[i], views[j], res.matches, inliers, (i, j) in done))
+                        block.append((views[i], views[j], matches, inliers, (i, j) in done))
                     if block and (len(block) == WRITE_BLOCK or n == len(todo)):
                         write_pairs(db, block)
                         for _, _, matches, inliers, _ in block:
