@@ -100,8 +100,8 @@ class TrackConsensus:
         Complete the groups of too few views by projection into the other
         views (:mod:`~episeg_cv.colmap.completion`, :func:`verify_and_complete`),
         for :func:`~episeg_cv.colmap.match_model`. Default False: on COLMAP's
-        features it gave 3-10 % more accurate 3D points on dinoSparseRing, three
-        synthetic rooms and templeSparseRing (+23 % there), but with our denser
+        features it gave 3-9 % more accurate 3D points on dinoSparseRing and four
+        synthetic rooms and 23 % more on templeSparseRing, but with our denser
         features it lowered the accurate fraction by up to 3 points.
 
     Examples
