@@ -212,7 +212,8 @@ def pycolmap_guided(views, features_db, database, max_error: float = 4.0) -> flo
 #: The library's defaults, on COLMAP's features and end to end: what the goals are checked on.
 DEFAULT_SAME = "ours on COLMAP's features, track consensus, tol auto (default)"
 DEFAULT_E2E = "ours end to end, track consensus, tol auto (default)"
-#: label -> (features, verify, tol, the consensus's loose ratio); None: the library's default.
+#: label -> (features, verify, tol, the consensus's loose ratio or "complete" for ``TrackConsensus(complete=True)``);
+#: None: the library's default.
 OURS = {
     "ours on COLMAP's features, pair rule, tol 2": ("database", "pairs", 2.0, None),
     "ours on COLMAP's features, previous default (tol 2, edges below ratio 0.9)": ("database", "tracks", 2.0, 0.9),
@@ -220,6 +221,8 @@ OURS = {
     "ours end to end, pair rule, tol 2": ("collection", "pairs", 2.0, None),
     "ours end to end, previous default (tol 2, edges below ratio 0.9)": ("collection", "tracks", 2.0, 0.9),
     DEFAULT_E2E: ("collection", "tracks", None, None),
+    "ours on COLMAP's features, track consensus + completion (opt-in)": ("database", "tracks", None, "complete"),
+    "ours end to end, track consensus + completion (opt-in)": ("collection", "tracks", None, "complete"),
 }
 PYCOLMAP = "pycolmap extract + match_exhaustive"
 GUIDED = "pycolmap match_guided (known poses, CALIBRATED)"
@@ -269,7 +272,8 @@ def run_set(name, model, image_dir, views, quality, work: Path, max_features: in
                 features = PRESETS["collection"].replace(max_features=max_features)
             notes = []
             given = ({} if tol is None else {"tol": tol})
-            verify = verify if loose is None else colmap.TrackConsensus(loose=loose)
+            verify = verify if loose is None else colmap.TrackConsensus(complete=True) if loose == "complete" else \
+                colmap.TrackConsensus(loose=loose)
             report = colmap.match_model(model, image_dir, db, features=features, verify=verify, **given,
                                         workers=workers,
                                         cache_dir=work / f"{len(out)}.features", log=notes.append)

@@ -70,6 +70,10 @@ def add_parser(sub, parents) -> None:
     p.add_argument("--loose-ratio", type=ratio_arg, default=None, metavar="R",
                    help=f"candidates below this ratio are edges of the track consensus (default: "
                         f"{TrackConsensus().loose}, every mutual candidate)")
+    p.add_argument("--complete-tracks", action="store_true",
+                   help="after the track consensus, project each two-view track into the other views with the known "
+                        "poses and add the keypoint found there (off by default: more 3D points on COLMAP's own "
+                        "features, a lower accurate fraction on dense ones)")
     p.add_argument("--workers", type=positive_int, default=None, metavar="N",
                    help="cores to use (default: every core): N threads for features and pairs, one pair per "
                         "thread; 1 runs everything on one core")
@@ -125,9 +129,12 @@ def run(args, console: Console) -> int:
     else:
         features = PRESETS["collection"].replace(detector=args.detector or "sift",
                                                  max_features=args.max_features or PRESETS["collection"].max_features)
-    if args.verify == "pairs" and args.loose_ratio is not None:
-        raise UserError("--loose-ratio applies to --verify tracks")
-    verify = args.verify if args.loose_ratio is None else colmap.TrackConsensus(loose=args.loose_ratio)
+    if args.verify == "pairs" and (args.loose_ratio is not None or args.complete_tracks):
+        raise UserError(f"{'--loose-ratio' if args.loose_ratio is not None else '--complete-tracks'} applies to "
+                        "--verify tracks")
+    options = {**({} if args.loose_ratio is None else {"loose": args.loose_ratio}),
+               **({"complete": True} if args.complete_tracks else {})}
+    verify = TrackConsensus(**options) if options else args.verify
     t0 = time.perf_counter()
     try:
         report = colmap.match_model(

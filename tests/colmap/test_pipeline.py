@@ -571,6 +571,7 @@ def test_cli_colmap_and_triangulate(folder, tmp_path):
     (["--features", "database"], "does not exist; --features database reads the features from it"),
     (["--features", "database", "--detector", "orb"], "--detector and --max-features apply to --features extract"),
     (["--verify", "pairs", "--loose-ratio", "0.8"], "--loose-ratio applies to --verify tracks"),
+    (["--verify", "pairs", "--complete-tracks"], "--complete-tracks applies to --verify tracks"),
     (["--ratio", "0.95", "--loose-ratio", "0.9"], "loose ratio (0.9) must be above the pair rule's ratio (0.95)"),
 ])
 def test_cli_errors_are_one_line(folder, tmp_path, extra, match):
@@ -580,6 +581,15 @@ def test_cli_errors_are_one_line(folder, tmp_path, extra, match):
     assert r.returncode == 1, r.stderr
     assert match in r.stderr and "Traceback" not in r.stderr and r.stderr.count("\n") == 1
     assert not (tmp_path / "c.db").exists()
+
+
+def test_cli_complete_tracks_adds_to_the_default_matches(folder, tmp_path):
+    for name, extra in (("d.db", []), ("c.db", ["--complete-tracks"])):
+        r = run("colmap", folder["model"], folder["images"], "--database", tmp_path / name, "--neighbors", "2", *extra)
+        assert r.returncode == 0, r.stderr
+    plain, completed = colmap.read_database_matches(tmp_path / "d.db"), colmap.read_database_matches(tmp_path / "c.db")
+    assert plain.keys() == completed.keys()
+    assert sum(len(v[1]) for v in completed.values()) >= sum(len(v[1]) for v in plain.values()) > 0
 
 
 def test_cli_synthetic(tmp_path):
