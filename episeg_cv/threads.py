@@ -23,14 +23,14 @@ the library's first use of them, with GNU OpenMP's spin count set to
 :data:`SPIN_COUNT` (``GOMP_SPINCOUNT``, set only while they start, and only
 when the environment sets neither it nor ``OMP_WAIT_POLICY`` and nothing
 started them before). GNU OpenMP's own default spins 300000 times before a
-waiting thread sleeps: next to one busy process, a 10k ``match`` on two
-threads then took 2-10x longer than on one, because at the end of every kernel
-a thread spun on the core that the thread it waited for needed. Sleeping at
-once (``OMP_WAIT_POLICY=PASSIVE``) is the most robust there, but costs a
-wake-up of about 50 us per parallel loop: the track consensus, which runs
-thousands of short parallel loops, then ran no faster on two threads than on
-one. A short spin keeps both (``benchmarks/results/contention.md``). Set
-either variable yourself before the first call to choose otherwise.
+waiting thread sleeps: at the end of every kernel, a waiting thread spins on
+the core that the thread it waits for may need. Next to one busy process a
+10k ``match`` on two threads then had a 90th percentile of 113 ms against
+15 ms with the short spin (``benchmarks/results/contention.md``). Sleeping at
+once (``OMP_WAIT_POLICY=PASSIVE``) costs a wake-up per parallel loop: the track
+consensus, which runs thousands of short parallel loops, was then slower on two
+threads than on one (0.81x; 1.27x with the short spin). Set either variable
+yourself before the first call to choose otherwise.
 """
 
 from __future__ import annotations
