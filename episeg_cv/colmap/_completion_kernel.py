@@ -13,7 +13,7 @@ import numba as nb
 import numpy as np
 from numba import prange
 
-from ._consensus_kernel import distinct_views, triangulate_point
+from ._consensus_kernel import distinct_views, find_root, reprojection_error, triangulate_point
 
 #: Norm codes of :func:`_distance` (those of the matching kernels' ``NORM_CODES`` by name).
 L2, L1, HAMMING = 0, 1, 2
@@ -184,14 +184,6 @@ def nearby_parallel(P, grp_ptr, grp_nodes, node_image, node_kp, node_xy, kp_xy, 
 
 
 @nb.njit(cache=True, nogil=True)
-def _find(parent, x):
-    while parent[x] != x:
-        parent[x] = parent[parent[x]]
-        x = parent[x]
-    return x
-
-
-@nb.njit(cache=True, nogil=True)
 def _holds(head, nxt, rec_image, k):
     """Whether the track starting at record ``head`` has an observation in view ``k``."""
     r = head
@@ -269,12 +261,12 @@ def additions(P, centers, grp_ptr, grp_nodes, node_image, node_kp, node_xy, grou
     for p in range(order.shape[0]):
         s = order[p] // n_views
         k = order[p] % n_views
-        r = _find(parent, sel[s])
+        r = find_root(parent, sel[s])
         if _holds(head[r], nxt, rec_image, k):
             continue
         q = kp_ptr[k] + best_kp[s, k]
         v = kp_node[q]
-        h = _find(parent, group[v]) if v >= 0 and group[v] >= 0 else -1
+        h = find_root(parent, group[v]) if v >= 0 and group[v] >= 0 else -1
         if h == r:
             continue
         if h < 0 and claimed[q]:
@@ -299,7 +291,7 @@ def additions(P, centers, grp_ptr, grp_nodes, node_image, node_kp, node_xy, grou
             continue
         ok = True
         for a in range(n):
-            if not (_error(P, obs_image[a], obs_xy[a, 0], obs_xy[a, 1], X) <= tau):
+            if not (reprojection_error(P, obs_image[a], obs_xy[a, 0], obs_xy[a, 1], X) <= tau):
                 ok = False
                 break
         if not ok:
@@ -328,7 +320,7 @@ def additions(P, centers, grp_ptr, grp_nodes, node_image, node_kp, node_xy, grou
     sure = np.zeros(n_groups, np.bool_)
     for g in range(n_groups):
         if confident[g]:
-            sure[_find(parent, g)] = True
+            sure[find_root(parent, g)] = True
     for g in range(n_groups):
         if parent[g] != g or not changed[g]:
             continue
@@ -343,7 +335,7 @@ def additions(P, centers, grp_ptr, grp_nodes, node_image, node_kp, node_xy, grou
     edge_b = np.empty((n_edges, 2), np.int64)
     e = 0
     for g in range(n_groups):
-        r = _find(parent, g)
+        r = find_root(parent, g)
         if root_views[r] < min_views:
             continue
         views[g] = root_views[r]
@@ -362,17 +354,3 @@ def additions(P, centers, grp_ptr, grp_nodes, node_image, node_kp, node_xy, grou
                 b = nxt[b]
             a = nxt[a]
     return edge_a[:e], edge_b[:e], views, n_added, n_merged
-
-
-@nb.njit(cache=True, nogil=True)
-def _error(P, k, x, y, X):
-    """Reprojection error of ``X`` at ``(x, y)`` in view ``k``, pixels (inf behind the camera)."""
-    h0 = P[k, 0, 0] * X[0] + P[k, 0, 1] * X[1] + P[k, 0, 2] * X[2] + P[k, 0, 3]
-    h1 = P[k, 1, 0] * X[0] + P[k, 1, 1] * X[1] + P[k, 1, 2] * X[2] + P[k, 1, 3]
-    h2 = P[k, 2, 0] * X[0] + P[k, 2, 1] * X[1] + P[k, 2, 2] * X[2] + P[k, 2, 3]
-    if not (h2 > 0.0):
-        return np.inf
-    dx = h0 / h2 - x
-    dy = h1 / h2 - y
-    return np.sqrt(dx * dx + dy * dy)
-

@@ -19,11 +19,25 @@ from numba import prange
 
 
 @nb.njit(cache=True, nogil=True)
-def _find(parent, x):
+def find_root(parent, x):
+    """The root of ``x`` in the union-find forest ``parent`` (path halving)."""
     while parent[x] != x:
-        parent[x] = parent[parent[x]]  # path halving
+        parent[x] = parent[parent[x]]
         x = parent[x]
     return x
+
+
+@nb.njit(cache=True, nogil=True)
+def reprojection_error(P, k, x, y, X):
+    """Reprojection error of ``X`` at ``(x, y)`` in view ``k``, pixels (inf behind the camera)."""
+    h0 = P[k, 0, 0] * X[0] + P[k, 0, 1] * X[1] + P[k, 0, 2] * X[2] + P[k, 0, 3]
+    h1 = P[k, 1, 0] * X[0] + P[k, 1, 1] * X[1] + P[k, 1, 2] * X[2] + P[k, 1, 3]
+    h2 = P[k, 2, 0] * X[0] + P[k, 2, 1] * X[1] + P[k, 2, 2] * X[2] + P[k, 2, 3]
+    if not (h2 > 0.0):
+        return np.inf
+    dx = h0 / h2 - x
+    dy = h1 / h2 - y
+    return np.sqrt(dx * dx + dy * dy)
 
 
 @nb.njit(cache=True, nogil=True)
@@ -101,15 +115,8 @@ def _support(P, node_image, node_xy, X, a, b, adj_ptr, adj, eu, ev, alive, tau, 
         v = queue[head]
         head += 1
         k = node_image[v]
-        h0 = P[k, 0, 0] * X[0] + P[k, 0, 1] * X[1] + P[k, 0, 2] * X[2] + P[k, 0, 3]
-        h1 = P[k, 1, 0] * X[0] + P[k, 1, 1] * X[1] + P[k, 1, 2] * X[2] + P[k, 1, 3]
-        h2 = P[k, 2, 0] * X[0] + P[k, 2, 1] * X[1] + P[k, 2, 2] * X[2] + P[k, 2, 3]
-        if not (h2 > 0.0):
-            continue
-        dx = h0 / h2 - node_xy[v, 0]
-        dy = h1 / h2 - node_xy[v, 1]
-        err = np.sqrt(dx * dx + dy * dy)
-        if not (err <= tau):
+        err = reprojection_error(P, k, node_xy[v, 0], node_xy[v, 1], X)
+        if not (err <= tau):  # (inf behind the camera)
             continue
         if best_node[k] < 0:
             touched[n_touched] = k
@@ -283,13 +290,13 @@ def _prepare(node_image, eu, ev, er):
     m = eu.shape[0]
     parent = np.arange(n)
     for e in range(m):
-        ra = _find(parent, eu[e])
-        rb = _find(parent, ev[e])
+        ra = find_root(parent, eu[e])
+        rb = find_root(parent, ev[e])
         if ra != rb:
             parent[ra] = rb
     root = np.empty(n, np.int64)
     for v in range(n):
-        root[v] = _find(parent, v)
+        root[v] = find_root(parent, v)
     # adjacency (CSR): the edges of each node
     deg = np.zeros(n + 1, np.int64)
     for e in range(m):
