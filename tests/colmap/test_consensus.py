@@ -292,9 +292,15 @@ def test_config_is_checked(kwargs, match):
 @settings(max_examples=25, deadline=None)
 @given(seed=st.integers(0, 10_000), n_views=st.integers(3, 6), noise=st.floats(0.0, 0.8))
 def test_consistent_tracks_are_kept_and_the_order_of_pairs_does_not_matter(seed, n_views, noise):
+    """Keypoints up to ``noise`` px (a disc) from their projections, at most 0.4 tau. Not tau / 2: the
+    triangulated point's error in one view can exceed every keypoint's offset (a least-squares point), and
+    with offsets up to 1 px hypothesis found seed 300 (4 views) where one reprojects beyond tau; a sweep of
+    900 scenes found 6 such at a 1.0 px radius and none at 0.8."""
     views, _, kp = _scene(n_views=n_views, n_points=12, seed=seed)
     rng = np.random.default_rng(seed)
-    kp = kp + rng.uniform(-noise, noise, kp.shape)  # within tau / 2 of the projections
+    angle = rng.uniform(0.0, 2.0 * np.pi, kp.shape[:-1])
+    radius = noise * np.sqrt(rng.uniform(0.0, 1.0, kp.shape[:-1]))
+    kp = kp + np.stack([radius * np.cos(angle), radius * np.sin(angle)], axis=-1)
     cands = _all_pairs(n_views, 12, ratio=0.85)
     cands = [(i, j, p, r + rng.uniform(-0.1, 0.04, len(r))) for i, j, p, r in cands]  # distinct ratios
     keep, _ = verify_tracks(views, cands, lambda k: kp[k], strict=0.68, tau=2.0)
