@@ -32,8 +32,8 @@ from .evaluation import GroundTruth, ground_truth_matches  # noqa: E402
 from .geometry import EpipolarGeometry, EpipolarSegments, Rejection, TwoViewGeometry  # noqa: E402
 from .io import Calibration, load_calibration, save_calibration  # noqa: E402
 from .matching import (AcceptRule, AutoTol, BandEstimate, CandidateIndex, GuidedMatches, Neighbors,  # noqa: E402
-                       SearchConfig, estimate_band, explain_pairs, filter_pairs, guided_matches, knn_descriptors,
-                       match_descriptors, radius_descriptors)
+                       SearchConfig, consistent_pairs, estimate_band, explain_pairs, filter_pairs, guided_matches,
+                       knn_descriptors, match_descriptors, radius_descriptors)
 from .opencv import SegmentMatcher, keypoints_to_array  # noqa: E402
 from .estimation import EstimatedGeometry, GeometryEstimationError, estimate_geometry, match_without_pose  # noqa: E402
 from .fundamental import FundamentalGeometry  # noqa: E402
@@ -70,6 +70,7 @@ __all__ = [
     "radius_descriptors",
     "filter_pairs",
     "explain_pairs",
+    "consistent_pairs",
     "keypoints_to_array",
     "GroundTruth",
     "ground_truth_matches",

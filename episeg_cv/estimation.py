@@ -46,6 +46,7 @@ from ._validation import as_camera_matrix, as_image_size, as_nonnegative, as_pos
 from .fundamental import FundamentalGeometry
 from .geometry import EpipolarGeometry, TwoViewGeometry
 from .matching import auto, banded, guided, repeats
+from .matching.consistency import consistent_pairs
 from .matching.config import AcceptRule, AutoTol, SearchConfig, resolve
 from .matching.filtering import keep_mask
 from .refinement import robust_sigma, segment_residuals
@@ -252,7 +253,7 @@ def union(inputs: guided.MatchInputs, pairs: np.ndarray, est: EstimatedGeometry,
 def match_without_pose(descriptors1, descriptors2, points1, points2, *, image_size1, image_size2, K1=None, K2=None,
                        norm="l2", search: SearchConfig | None = None, rule: AcceptRule | None = None, rng: int = 0,
                        first_ratio: float = 0.8, threshold: float = 1.0, reject_repeats: bool = False,
-                       **options) -> tuple[np.ndarray, np.ndarray, EstimatedGeometry]:
+                       consistency: bool = False, **options) -> tuple[np.ndarray, np.ndarray, EstimatedGeometry]:
     """Match two views with no pose: estimate the geometry, match on its segments, add the first pass.
 
     Parameters
@@ -269,6 +270,12 @@ def match_without_pose(descriptors1, descriptors2, points1, points2, *, image_si
         Leave out the matches whose keypoints have a twin in their own image inside the same band
         (:mod:`episeg_cv.matching.repeats`: ``d(match) >= first_ratio * d(twin)``, Lowe's test against
         the twin). For repeated structure; default False (it also drops a few correct matches of
+        ordinary pairs: numbers in ``benchmarks/results/compare.md``).
+    consistency : bool, optional
+        Leave out the matches that disagree with the affine map of their nearest first-pass matches
+        (:func:`~episeg_cv.matching.consistency.consistent_pairs`, the anchors being the matches that passed
+        the first pass's ratio test over all keypoints). For repeated structure, where it removes most of the
+        wrong matches that the twin test leaves; default False (it costs 2-10 % of the correct matches of
         ordinary pairs: numbers in ``benchmarks/results/compare.md``).
 
     Returns
@@ -287,8 +294,9 @@ def match_without_pose(descriptors1, descriptors2, points1, points2, *, image_si
         raise ValueError("K1 and K2 must be given together (both for the essential path, neither for F)")
     if K1 is None and search.bounded:
         raise ValueError("a depth range needs K1 and K2 (without a calibration, depth has no unit)")
-    if not isinstance(reject_repeats, (bool, np.bool_)):
-        raise TypeError(f"reject_repeats must be True or False, got {reject_repeats!r}")
+    for name, flag in (("reject_repeats", reject_repeats), ("consistency", consistency)):
+        if not isinstance(flag, (bool, np.bool_)):
+            raise TypeError(f"{name} must be True or False, got {flag!r}")
     if K1 is not None:
         K1, K2 = as_camera_matrix(K1, "K1"), as_camera_matrix(K2, "K2")
     first_ratio = as_ratio(first_ratio, "first_ratio")
@@ -302,5 +310,10 @@ def match_without_pose(descriptors1, descriptors2, points1, points2, *, image_si
     out, dist = union(inputs, pairs, est, s)
     if reject_repeats:  # Lowe's test against the twin: the first pass's ratio
         keep = ~repeats.ambiguous(inputs, out, est.geometry, s, first_ratio)
+        out, dist = out[keep], dist[keep]
+    if consistency:  # anchors: the matches that Lowe's test over all keypoints found too
+        n2 = len(inputs.points2)
+        anchors = np.isin(out[:, 0] * n2 + out[:, 1], est.first_pass[:, 0] * n2 + est.first_pass[:, 1])
+        keep = consistent_pairs(inputs.points1, inputs.points2, out, anchors=anchors, tol=est.tol)
         out, dist = out[keep], dist[keep]
     return out, dist, est

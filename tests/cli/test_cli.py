@@ -156,6 +156,21 @@ def test_wrong_calibration_gives_exit_1_and_a_clear_message(tmp_path):
     _check_no_traceback(r)
 
 
+@pytest.mark.parametrize("posed", [False, True])
+def test_match_consistency(tmp_path, posed):
+    """--consistency: a subset of the plain run's matches (with a pose too: all matches are anchors), recorded
+    in meta.settings."""
+    calib = ("--calib", CALIB) if posed else ()
+    out, plain = tmp_path / "c.json", tmp_path / "p.json"
+    r = run("match", IMG1, IMG2, *calib, "--max-features", "800", "--consistency", "--out", out)
+    assert r.returncode == 0, r.stderr
+    assert run("match", IMG1, IMG2, *calib, "--max-features", "800", "--out", plain).returncode == 0
+    got, ref = json.loads(out.read_text()), json.loads(plain.read_text())
+    assert got["meta"]["settings"]["consistency"] and not ref["meta"]["settings"]["consistency"]
+    assert 0.7 * len(ref["matches"]) < len(got["matches"]) < len(ref["matches"])
+    assert {tuple(m) for m in got["matches"]} <= {tuple(m) for m in ref["matches"]}
+
+
 @pytest.mark.parametrize("args, message", [
     (["match", IMG1, "missing.png", "--calib", CALIB], "image not found: missing.png"),
     (["match", IMG1, IMG2, "--calib", "missing.json"], "calibration file not found: missing.json"),

@@ -60,4 +60,8 @@ def test_compare_quick_produces_sane_tables(tmp_path):
     assert any(r["pair"].startswith("repetitive") for r in nopose["rows"])
     for r in nopose["rows"]:
         assert 0 <= r["correct"] <= r["returned"]
-    assert "precision_all" in nopose["goals"] and "repetitive" in nopose["goals"]
+    goals = nopose["goals"]
+    assert set(goals["per_configuration"]) == {m for m in names if m.startswith("ours")}
+    assert set(goals["met_by"]) <= set(goals["per_configuration"]) and "repetitive" in goals
+    for m, g in goals["per_configuration"].items():  # a configuration without misses meets every goal
+        assert (not g["misses"]) == (g["precision"] and g["more"] and g["repetitive"]) == (m in goals["met_by"])

@@ -99,6 +99,26 @@ def test_rejecting_repeats_leaves_out_only_ambiguous_matches(pair, intrinsics):
     assert c1 >= 0.97 * c0 and pr1 >= pr0 - 0.002
 
 
+
+@pytest.mark.parametrize("intrinsics", [False, True])
+def test_consistency_leaves_out_matches_that_disagree_with_their_first_pass_neighbours(pair, intrinsics):
+    """consistency=True: consistent_pairs with the first-pass matches as anchors and the estimated band as
+    tol, on the plain result. On these ordinary scenes (precision 0.97-0.997 already): at least 90 % of its
+    correct matches, the same precision within 0.002 (forward with K: 0.99650 -> 0.99646)."""
+    from episeg_cv import consistent_pairs
+    p, d1, d2, p1, p2, gt = pair
+    g = p.geometry
+    kw = dict(image_size1=g.image_size1, image_size2=g.image_size2, **(dict(K1=g.K1, K2=g.K2) if intrinsics else {}))
+    plain, plain_dist, est = match_without_pose(d1, d2, p1, p2, **kw)
+    pairs, dist, _ = match_without_pose(d1, d2, p1, p2, consistency=True, **kw)
+    first = {tuple(x) for x in est.first_pass.tolist()}
+    anchors = np.array([tuple(x) in first for x in plain.tolist()])
+    keep = consistent_pairs(p1, p2, plain, anchors=anchors, tol=est.tol)
+    assert np.array_equal(pairs, plain[keep]) and np.array_equal(dist, plain_dist[keep])
+    (c0, pr0), (c1, pr1) = _score(gt, plain), _score(gt, pairs)
+    assert c1 >= 0.9 * c0 and pr1 >= pr0 - 0.002 and len(pairs) < len(plain)
+
+
 def test_too_few_matches_to_estimate():
     rng = np.random.default_rng(0)
     d = rng.random((6, 32)).astype(np.float32)
@@ -142,3 +162,5 @@ def test_match_without_pose_bad_input():
         match_without_pose(d, d, p, p, tolerance=3, **size)
     with pytest.raises(TypeError, match="reject_repeats must be True or False"):
         match_without_pose(d, d, p, p, reject_repeats="yes", **size)
+    with pytest.raises(TypeError, match="consistency must be True or False"):
+        match_without_pose(d, d, p, p, consistency=1, **size)
