@@ -275,8 +275,8 @@ def match_without_pose(descriptors1, descriptors2, points1, points2, *, image_si
         Leave out the matches that disagree with the affine map of their nearest first-pass matches
         (:func:`~episeg_cv.matching.consistency.consistent_pairs`, the anchors being the matches that passed
         the first pass's ratio test over all keypoints). For repeated structure, where it removes most of the
-        wrong matches that the twin test leaves; default False (it costs 2-10 % of the correct matches of
-        ordinary pairs: numbers in ``benchmarks/results/compare.md``).
+        wrong matches that the twin test leaves; default False (it costs 1-5 % of the correct matches of
+        ordinary pairs, more where the anchors are sparse: numbers in ``benchmarks/results/compare.md``).
 
     Returns
     -------

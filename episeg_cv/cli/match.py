@@ -61,7 +61,7 @@ def add_parser(sub, parents) -> None:
     p.add_argument("--consistency", action="store_true",
                    help="leave out the matches that disagree with the affine map of their 10 nearest anchors (with "
                         "an estimated geometry: the first-pass matches; with a pose: all matches); for repeated "
-                        "texture, costs 2-10 %% of the correct matches of ordinary pairs")
+                        "texture; costs a few %% of the correct matches of ordinary pairs")
     p.add_argument("--max-features", type=max_features_arg, default=4000, metavar="N", help="keypoints per image")
     p.add_argument("--threads", type=positive_int, default=None, metavar="N",
                    help="threads of the detector (cv2.setNumThreads) and of the matcher (episeg_cv.set_num_threads); "

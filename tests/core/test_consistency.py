@@ -66,6 +66,24 @@ def test_only_anchors_are_neighbours():
     assert not ok[block].any() and ok[~block].all()
 
 
+def test_the_second_check_is_anchored_on_what_the_first_kept():
+    """A curved flow (x2 = x1 + 0.004 (x - 200)^2 along x), every match right, anchors on a sparse 80 px grid:
+    the affine map over far anchors misses the curve, and the first check keeps about a third. The second,
+    anchored on those, keeps most; with every match an anchor, all pass."""
+    rng = np.random.default_rng(0)
+    p1 = np.stack(np.meshgrid(np.arange(0, 400, 10.0), np.arange(0, 400, 10.0)), -1).reshape(-1, 2)
+    p1 += rng.uniform(-2, 2, p1.shape)
+    p2 = p1.copy()
+    p2[:, 0] += 0.004 * (p1[:, 0] - 200) ** 2
+    pairs = _identity(len(p1))
+    sparse = (np.round(p1[:, 0] / 10) % 8 == 0) & (np.round(p1[:, 1] / 10) % 8 == 0)
+    r, spacing = affine_residuals(p1, p2, sparse, 10, 2.0, 0.1)
+    first = (r <= 2.0 + 0.1 * spacing).mean()
+    assert first < 0.5
+    assert consistent_pairs(p1, p2, pairs, anchors=sparse).mean() > first + 0.3
+    assert consistent_pairs(p1, p2, pairs).all()
+
+
 # --------------------------------------------------------------------------------------
 # cv2 reference
 # --------------------------------------------------------------------------------------
