@@ -18,9 +18,9 @@ repeated structure: a wall matched one period off is consistent *with itself*
 (a check against all neighbours keeps it, measured), but not with the
 unambiguous matches around it. The check runs twice: the second time the
 anchors are the matches that passed the first, denser than the given ones
-(on the repetitive pairs of ``benchmarks/compare.py``: 6-7 % more correct
-matches at the same precision). A match with fewer than three anchors cannot
-be checked and is kept.
+(on the repetitive pairs of ``benchmarks/compare.py``: 5-7 % more correct
+matches, precision within 0.01). With fewer than four anchors in all nothing
+can be checked, and every match is kept.
 
 It is outlier rejection after matching, for any matcher; it does not need the
 pose. It costs correct matches where the surface is not smooth at the scale of
@@ -37,14 +37,8 @@ from .._validation import as_array, as_index_pairs, as_nonnegative, as_points, a
 
 __all__ = ["affine_residuals", "consistent_pairs"]
 
-#: Anchors the affine fit needs at the least (3 points fix an affine map).
+#: Anchors each fit needs at the least, besides the match itself (3 points fix an affine map).
 MIN_ANCHORS = 3
-
-
-def _fit(A: np.ndarray, B: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """``(K, 3, 2)`` least-squares affine maps of the rows of ``A (K, k, 3)`` to ``B (K, k, 2)``, rows
-    weighted by ``w (K, k)`` (0 or 1)."""
-    return np.linalg.pinv(A * w[..., None]) @ (B * w[..., None])
 
 
 def affine_residuals(x1: np.ndarray, x2: np.ndarray, anchors: np.ndarray, k: int, tol: float,
@@ -68,7 +62,7 @@ def affine_residuals(x1: np.ndarray, x2: np.ndarray, anchors: np.ndarray, k: int
     Returns
     -------
     residual : (K,) float64
-        Distance in pixels from ``x2`` to the prediction; NaN where fewer than three anchors are left.
+        Distance in pixels from ``x2`` to the prediction; all NaN when fewer than four are anchors.
     spacing : (K,) float64
         Median distance in pixels from ``x1`` to its anchors; NaN likewise.
     """
@@ -99,7 +93,7 @@ def affine_residuals(x1: np.ndarray, x2: np.ndarray, anchors: np.ndarray, k: int
     worst = off.argmax(axis=1)
     w = np.ones((n, k))
     w[np.arange(n), worst] = off[np.arange(n), worst] <= tol + slack * spacing
-    M = _fit(A, B, w)
+    M = np.linalg.pinv(A * w[..., None]) @ (B * w[..., None])                  # (K, 3, 2)
     return np.hypot(*(M[:, 2] - x2).T), spacing
 
 
@@ -129,7 +123,8 @@ def consistent_pairs(points1, points2, pairs, *, anchors=None, k: int = 10, tol:
     Returns
     -------
     (K,) bool
-        True for the consistent matches, and for those with fewer than three anchors (not checked).
+        True for the consistent matches (for all of them when fewer than four are anchors: nothing can
+        be checked).
 
     Raises
     ------

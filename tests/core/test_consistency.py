@@ -165,7 +165,7 @@ def test_edge_cases():
     p = _jittered_grid(4)
     empty = consistent_pairs(p, p, np.zeros((0, 2), np.intp))
     assert empty.shape == (0,) and empty.dtype == bool
-    # fewer than three anchors besides the match: nothing can be checked, all kept
+    # fewer than four anchors in all: nothing can be checked, all kept
     far = p + 100.0 * np.arange(len(p))[:, None]
     assert consistent_pairs(p, far, _identity(len(p)), anchors=np.arange(len(p)) < 3).all()
     assert consistent_pairs(p[:3], far[:3], _identity(3)).all()
