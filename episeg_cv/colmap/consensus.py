@@ -295,7 +295,8 @@ def verify_tracks(views, candidates, keypoints, strict: float, tau: float,
 
 
 def verify_and_complete(views, candidates, keypoints, descriptors, strict: float, tau: float,
-                        config: TrackConsensus = TrackConsensus(), norm: str = "l2") -> tuple[list, list, dict]:
+                        config: TrackConsensus = TrackConsensus(), norm: str = "l2",
+                        images=None) -> tuple[list, list, dict]:
     """:func:`verify_tracks`, then its groups of too few views completed by projection (:mod:`.completion`).
 
     Parameters
@@ -306,6 +307,9 @@ def verify_and_complete(views, candidates, keypoints, descriptors, strict: float
         ``descriptors(i)`` -> ``(N_i, D)`` descriptors of view ``i``, a row per keypoint.
     norm : {"l2", "l2sqr", "l1", "hamming"}, optional
         Their norm. Default ``"l2"``.
+    images : callable or None, optional
+        ``images(i)`` -> the grayscale pinhole image of view ``i``: the proposals must then look like their
+        group (:func:`.completion.photo_consistency`). Default None: no photometric check.
 
     Returns
     -------
@@ -333,10 +337,10 @@ def verify_and_complete(views, candidates, keypoints, descriptors, strict: float
     >>> [k.tolist() for k in keep], [a.tolist() for a in added], stats["added"]
     ([[True], [], []], [[], [[0, 0]], [[0, 0]]], 1)
     """
-    return _verify(views, candidates, keypoints, strict, tau, config, descriptors, norm)
+    return _verify(views, candidates, keypoints, strict, tau, config, descriptors, norm, images)
 
 
-def _verify(views, candidates, keypoints, strict, tau, config, descriptors, norm):
+def _verify(views, candidates, keypoints, strict, tau, config, descriptors, norm, images=None):
     """:func:`verify_and_complete`, without the completion when ``descriptors`` is None."""
     tau = config.tau if config.tau is not None else tau
     if not (_is_number(tau) and np.isfinite(tau) and tau > 0):
@@ -364,7 +368,7 @@ def _verify(views, candidates, keypoints, strict, tau, config, descriptors, norm
         sizes_px = np.array([v.image_size for v in views], np.float64).reshape(-1, 2)
         ea, eb, group_views, more = completion.complete_groups(
             P, centers, sizes_px, node_image, node_kp, node_xy, group, group_views, group_views < config.min_views,
-            lowest < strict, keypoints, descriptors, norm, tau, cos_min_angle, config.min_views)
+            lowest < strict, keypoints, descriptors, norm, tau, cos_min_angle, config.min_views, images)
         added = _added_matches(candidates, len(views), ea, eb)
         stats.update(more)
     gu, gv = group[eu], group[ev]

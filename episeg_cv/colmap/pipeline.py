@@ -33,6 +33,7 @@ from ..interrupts import terminate_as_interrupt
 from ..matching import small
 from ..matching.config import AcceptRule, AutoTol, SearchConfig, resolve
 from .band import collection_band, sample_pairs
+from . import completion
 from .consensus import TrackConsensus, verify_and_complete, verify_tracks
 from .database import (check_database_path, check_resumable, create_database, database_lock, pair_unchanged,
                        write_pair, write_pairs)
@@ -491,7 +492,8 @@ class _Run:
             if self.consensus.complete:
                 keep, added, stats = verify_and_complete(views, candidates, pinhole,
                                                          lambda k: self.store.load(views[k])[2], self.rule.ratio,
-                                                         self.search.tol, self.consensus, self.store.norm)
+                                                         self.search.tol, self.consensus, self.store.norm,
+                                                         completion.pinhole_images(views, self.store.image_dir))
             else:
                 keep, stats = verify_tracks(views, candidates, pinhole, self.rule.ratio, self.search.tol,
                                             self.consensus)

@@ -8,7 +8,7 @@ import episeg_cv
 from episeg_cv import scenes
 from episeg_cv.colmap import TrackConsensus, View, verify_tracks
 from episeg_cv.colmap import _completion_kernel
-from episeg_cv.colmap.consensus import verify_and_complete
+from episeg_cv.colmap.consensus import _normalised, verify_and_complete
 
 K = np.array([[100.0, 0, 50], [0, 100.0, 50], [0, 0, 1]])
 
@@ -308,3 +308,76 @@ def test_match_model_with_completion_keeps_more_and_triangulates_more(tmp_path):
         assert all(tuple(r) in have for r in inl)
     assert rec_on.num_points3D() > rec_off.num_points3D()
     assert rec_on.compute_mean_reprojection_error() < 1.0
+
+
+# --------------------------------------------------------------------------------------
+# The photometric check
+# --------------------------------------------------------------------------------------
+def _plane_images(views, seed=0, size=100):
+    """Images of the textured plane z = 20 (the depth of X0) seen by the cameras of _line: camera k is k units
+    to the right, so its image is the texture shifted 5 k pixels left (100 / 20 per unit)."""
+    import cv2
+    rng = np.random.default_rng(seed)
+    tex = cv2.GaussianBlur(rng.uniform(0, 255, (size, size + 40)).astype(np.float32), (0, 0), 1.5)
+    return [np.ascontiguousarray(tex[:, 5 * k: 5 * k + size]) for k in range(len(views))]
+
+
+def test_a_proposal_whose_patch_does_not_match_is_refused():
+    """Hand-made: the third view's keypoint lies where X0 projects (within tau), but its image shows another
+    texture there: the NCC is about 0, below MIN_NCC, and nothing is added. With the true image it is."""
+    from episeg_cv.colmap import completion
+    views = _line(3)
+    kp = [x[None] for x in _at(views, X0)]
+    cands = _pairs(3, {(0, 1): (np.array([[0, 0]]), np.array([0.5]))})
+    ims = _plane_images(views)
+    _, added, _ = verify_and_complete(views, cands, lambda k: kp[k], lambda k: D[:1], 0.68, 1.0,
+                                      images=lambda k: ims[k])
+    assert _added(cands, added) == {(0, 2): [[0, 0]], (1, 2): [[0, 0]]}
+    other = _plane_images(views, seed=1)
+    mixed = [ims[0], ims[1], other[2]]
+    _, added, stats = verify_and_complete(views, cands, lambda k: kp[k], lambda k: D[:1], 0.68, 1.0,
+                                          images=lambda k: mixed[k])
+    assert _added(cands, added) == {} and stats["added"] == 0
+    # the scores themselves: the true patch correlates (the plane is the true surface), the other does not
+    P, centers = _normalised(views)  # camera centres (-1, 0, 0), (0, 0, 0), (1, 0, 0): X0 becomes (0, 0, 20)
+    Xn = X0 - [1.0, 0.0, 0.0]
+    args = (P, centers, Xn[None], np.array([2]), kp[2], np.array([[0, 1]]))
+    assert completion.photo_consistency(*args, lambda k: ims[k])[0] > 0.95
+    assert abs(completion.photo_consistency(*args, lambda k: mixed[k])[0]) < completion.MIN_NCC
+
+
+def test_views_beyond_max_angle_are_not_checked_and_refused():
+    from episeg_cv.colmap import completion
+    views = _line(3)
+    ims = _plane_images(views)
+    P, centers = _normalised(views)
+    X = np.array([[0.0, 0.0, 0.3]])  # near the cameras: view 2 sees it at a wide angle from view 0
+    x2 = P[2] @ np.append(X[0], 1)
+    nc = completion.photo_consistency(P, centers, X, np.array([2]), (x2[:2] / x2[2])[None], np.array([[0]]),
+                                      lambda k: ims[k], max_angle=1.0)
+    assert np.isnan(nc[0])
+
+
+@pytest.mark.skipif(__import__("numba").config.NUMBA_NUM_THREADS < 2, reason="needs two numba threads")
+def test_threads_give_the_serial_result_with_the_photometric_check():
+    """The scene of test_threads_give_the_serial_result on noise images: many proposals are refused, and
+    one thread and two agree."""
+    n = 2500
+    views, kp, des = _scene(5, n, seed=4, noise=0.3, distractors=500)
+    rng = np.random.default_rng(5)
+    ims = [rng.uniform(0, 255, (480, 640)).astype(np.float32) for _ in views]
+    idx = np.arange(n)
+    cands = _pairs(5, {(0, 1): (np.column_stack([idx, idx]), np.full(n, 0.5))})
+    results = []
+    for threads in (1, 2):
+        episeg_cv.set_num_threads(threads)
+        try:
+            results.append(verify_and_complete(views, cands, lambda k: kp[k], lambda k: des[k], 0.68, 1.0,
+                                               images=lambda k: ims[k]))
+        finally:
+            episeg_cv.set_num_threads(None)
+    (k1, a1, s1), (k2, a2, s2) = results
+    base = verify_and_complete(views, cands, lambda k: kp[k], lambda k: des[k], 0.68, 1.0)[2]
+    assert s1 == s2 and s1["added"] < base["added"] / 2  # noise images: unrelated patches
+    for x, y in zip(k1 + a1, k2 + a2):
+        np.testing.assert_array_equal(x, y)
