@@ -14,8 +14,8 @@ import importlib
 import time
 
 KERNEL_MODULES = ("episeg_cv.matching._kernels", "episeg_cv.matching._index_kernels",
-                  "episeg_cv.matching._small_kernels", "episeg_cv.matching._band_kernels",
-                  "episeg_cv._geometry_kernels")
+                  "episeg_cv.matching._small_kernels", "episeg_cv.matching._pair_kernel",
+                  "episeg_cv.matching._band_kernels", "episeg_cv._geometry_kernels")
 
 
 def python_share(model, image_dir, work, cache, repeats: int = 3) -> dict:

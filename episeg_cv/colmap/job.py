@@ -6,14 +6,20 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .. import threads
+from ..geometry import CHEIRALITY_EPS
+from ..matching import _pair_kernel as _pk
 from ..matching import guided, small
 from ..matching.config import AcceptRule, SearchConfig
-from ..matching.distances import Distances
+from ..matching.distances import PAD_CHUNK, PAD_ROUND, Distances
 from ..matching.filtering import keep_mask
 from .store import FeatureStore
 from .views import View
 
 __all__ = ["PairJob", "PairResult", "match_pair", "match_pairs", "pair_inputs"]
+
+#: Queries per pencil bucket of a pair's candidate index (:func:`~episeg_cv.matching.guided.match`'s default).
+BUCKET_SIZE = 64
 
 
 @dataclass(frozen=True)
@@ -87,8 +93,33 @@ def match_pair(job: PairJob) -> PairResult:
     ``job.loose``, the raw matches are those of ratio ``job.loose`` (same rule
     otherwise), and the inliers come back with their ratio values.
     Keypoints without a pinhole position (NaN) are not matched.
+
+    On one kernel thread (:func:`episeg_cv.threads.get_num_threads`, as in the runner's workers), a
+    pair that the small-pair path does not take is matched in one compiled call that holds no GIL
+    (:func:`_fused`), so that a pool of threads is not held back by the Python between the stages:
+    on the 24-view room the Python share of a pair's CPU time went from 20 % to 5 %
+    (``benchmarks/_gil.py``). The results are the same bits (``tests/colmap/test_pair_kernel.py``).
     """
     inputs, g, idx1, idx2 = pair_inputs(job.view1, job.view2, job.store)
+    q1, q2, dist = inputs.points1, inputs.points2, inputs.distances
+    if _fusable(job, len(q1), len(q2)):
+        return _fused(job, g, (q1, dist.a, idx1), (q2, dist.b, idx2))
+    pairs, ratios, keep = _stages(job, inputs, g)
+    return _result(job, g, q1, pairs, keep, ratios, idx1, idx2)
+
+
+def _fusable(job: PairJob, n1: int, n2: int) -> bool:
+    """Whether :func:`_fused` serves a pair of ``n1`` and ``n2`` keypoints: one kernel thread in this Python
+    thread (a worker of the pool, or of Dask), a numeric band, and a pair too large for the small-pair
+    path, which :func:`~episeg_cv.matching.guided.nearest` takes otherwise."""
+    return (threads.get_num_threads() == 1 and job.search.constraint != "none" and job.search.auto is None
+            and not small.fits(n1, n2, job.search, job.rule))
+
+
+def _stages(job: PairJob, inputs, g):
+    """``(pairs, ratios or None, keep)`` of :func:`match_pair`, stage by stage (each stage's kernels on
+    the kernel threads): the raw matches, their ratios (with ``job.loose``), and which pass the
+    reverse test."""
     q1, q2 = inputs.points1, inputs.points2
     search = job.search.replace(depth_range=job.view1.depth_range)
     ratios = None
@@ -100,7 +131,29 @@ def match_pair(job: PairJob) -> PairResult:
         keep = (r < job.loose) & (mutual if (rule.mutual or rule.cross_check) else True)
         pairs, ratios = np.column_stack([i[keep], j[keep]]).astype(np.intp), r[keep]
     keep = keep_mask(pairs[:, ::-1], q2, q1, g.inverse(), job.search.replace(depth_range=job.view2.depth_range))
-    return _result(job, g, q1, pairs, keep, ratios, idx1, idx2)
+    return pairs, ratios, keep
+
+
+def _fused(job: PairJob, g, image1: tuple, image2: tuple) -> PairResult:
+    """:func:`match_pair` in one compiled call on this thread, without the GIL
+    (:func:`episeg_cv.matching._pair_kernel.match_pair`): the same result as :func:`_stages` gives.
+    ``image1`` / ``image2``: ``(points, scoring rows, stored indices or None)`` (:func:`_image_rows`)."""
+    (q1, a1, idx1), (q2, a2, idx2) = image1, image2
+    rule, norm = job.rule, job.store.norm
+    n_pad = min(rule.pad, len(q2))
+    pad_j = guided.padding_references(0, len(q2), n_pad) if n_pad and len(q1) else np.zeros(0, dtype=np.int64)
+    gi = g.inverse()
+    with threads.blas_limit(1):  # (the padding's products, as in Distances.nearest_excluding)
+        pairs, ratios, keep = _pk.match_pair(
+            np.ascontiguousarray(q1), np.ascontiguousarray(q2), a1, a2, _pk.NORM_CODES[norm], norm == "l2",
+            np.ascontiguousarray(g.infinity_homography), g.epipole_homogeneous,
+            np.ascontiguousarray(gi.infinity_homography), gi.epipole_homogeneous,
+            np.array(job.view1.depth_range, dtype=np.float64), np.array(job.view2.depth_range, dtype=np.float64),
+            np.array(g.image_size1, dtype=np.float64), np.array(g.image_size2, dtype=np.float64), CHEIRALITY_EPS,
+            float(job.search.tol), job.search.constraint == "line", BUCKET_SIZE, pad_j,
+            float(rule.ratio if job.loose is None else job.loose), bool(rule.mutual or rule.cross_check),
+            bool(rule.cross_check), job.loose is not None, PAD_CHUNK, PAD_ROUND)
+    return _result(job, g, q1, pairs, keep, ratios if job.loose is not None else None, idx1, idx2)
 
 
 def _result(job: PairJob, g, q1, pairs, keep, ratios, idx1, idx2) -> PairResult:
@@ -128,7 +181,8 @@ def match_pairs(jobs: list) -> list:
 
     A pair's Python (its inputs, its geometry, its result) took as long as its arithmetic on
     dinoSparseRing (about 0.2 ms each) and held the GIL: two threads matched pairs 1.07x as fast as one.
-    Here the inputs are prepared once per image, and only the geometry and the result once per pair.
+    Here the inputs are prepared once per image, and only the geometry and the result once per pair;
+    the large pairs use them too when they are matched in one compiled call (:func:`match_pair`).
     """
     if not jobs:
         return []
@@ -145,8 +199,16 @@ def match_pairs(jobs: list) -> list:
                   for j in jobs]
     batch = _match_batch([j for j, s in zip(jobs, small_ones) if s], images)
     out = {r.index: r for r in batch}
-    out.update((j.index, match_pair(j)) for j, s in zip(jobs, small_ones) if not s)
+    out.update((j.index, _match_one(j, images)) for j, s in zip(jobs, small_ones) if not s)
     return [out[j.index] for j in jobs]
+
+
+def _match_one(job: PairJob, images: dict) -> PairResult:
+    """:func:`match_pair` of a large pair whose images' rows are loaded (:func:`_image_rows`)."""
+    image1, image2 = images[job.view1.name], images[job.view2.name]
+    if _fusable(job, len(image1[0]), len(image2[0])):
+        return _fused(job, job.view1.geometry_to(job.view2), image1, image2)
+    return match_pair(job)
 
 
 def _image_rows(view: View, store: FeatureStore):

@@ -27,7 +27,7 @@ from .. import _geometry_kernels as _gk
 from . import _index_kernels as _ik
 from . import _kernels
 
-__all__ = ["nearest", "segment_keep", "pairs", "pairs_parallel"]
+__all__ = ["nearest", "nearest_ratios", "reverse_keep", "segment_keep", "pairs", "pairs_parallel"]
 
 
 @nb.njit(cache=True, nogil=True)
@@ -127,7 +127,19 @@ def nearest(x1, x2, A, B, norm, root, H, b, zmin, zmax, rect, eps, tol, pad_j, r
         m = n_rows[ax]
         _kernels._scan_rows(0, m, rows[ax, :m], lo[ax, :m], hi[ax, :m], order[ax], geo, ys[ax], False, tol, tol2,
                             A, B, norm, idx, sc, counts, col_s, col_i, buf_p, buf_s)
-    # the nearest candidate of each query, its mutual flag and its ratio; the padding where it can matter
+    i, j, ratios, mutual = nearest_ratios(idx, sc, col_i, A, B, norm, root, pad_j, ratio, mutual_rule, prefilter,
+                                          chunk, round_to)
+    return i, j, ratios, mutual, counts
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def nearest_ratios(idx, sc, best, A, B, norm, root, pad_j, ratio, mutual_rule, prefilter, chunk, round_to):
+    """The end of :func:`nearest` once the candidates are scanned: ``(i, j, ratio, mutual)`` of every query
+    with a candidate, from its two best ``idx (N1, 2)`` / ``sc (N1, 2)``; ``best (N2,)``: each keypoint's
+    nearest query (mutual: ``best[j] == i``). The padding references ``pad_j`` are scored (for the pairs
+    that ``ratio`` and ``mutual_rule`` keep without them, with ``prefilter``) as
+    :meth:`~.distances.Distances.nearest_excluding` scores them on one thread."""
+    n1 = idx.shape[0]
     n = 0
     for q in range(n1):
         n += idx[q, 0] >= 0
@@ -138,7 +150,7 @@ def nearest(x1, x2, A, B, norm, root, H, b, zmin, zmax, rect, eps, tol, pad_j, r
     for q in range(n1):
         if idx[q, 0] >= 0:
             i[n], j[n], s1[n], s2[n] = q, idx[q, 0], sc[q, 0], sc[q, 1]
-            mutual[n] = col_i[idx[q, 0]] == q
+            mutual[n] = best[idx[q, 0]] == q
             n += 1
     if pad_j.shape[0] and n:
         padded = np.empty(n, dtype=np.int64)
@@ -166,7 +178,7 @@ def nearest(x1, x2, A, B, norm, root, H, b, zmin, zmax, rect, eps, tol, pad_j, r
     ratios = np.empty(n)
     for r in range(n):
         ratios[r] = _ratio(_distance(s1[r], root), _distance(s2[r], root))
-    return i, j, ratios, mutual, counts
+    return i, j, ratios, mutual
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
@@ -193,6 +205,27 @@ def segment_keep(line, start, end, valid, i, y, j, tol):
     return keep
 
 
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def reverse_keep(x1, x2, i, j, Hi, bi, zmin, zmax, rect1, eps, tol, is_line):
+    """``(K,)`` bool: the query ``x1[i[k]]`` lies within ``tol`` of the segment (or, ``is_line``, the line) in
+    image 1 of the keypoint ``x2[j[k]]``, as :func:`~.filtering.keep_mask` tests the pairs ``(j, i)``
+    from image 2 to image 1 (``Hi``, ``bi``: the inverse geometry; ``zmin`` / ``zmax`` ``(1,)``: image 2's
+    depth range; ``rect1``: image 1 grown by ``tol``). A NaN line keeps nothing."""
+    m = i.shape[0]
+    y = np.empty((m, 2))
+    for k in range(m):
+        y[k, 0], y[k, 1] = x2[j[k], 0], x2[j[k], 1]
+    start, end, line = np.empty((m, 2)), np.empty((m, 2)), np.empty((m, 3))
+    p_inf, a, valid = np.empty((m, 2)), np.empty((m, 3)), np.empty(m, dtype=np.bool_)
+    _gk._segments(0, m, y, Hi, bi, zmin, zmax, rect1, eps, start, end, valid, line, p_inf, a)
+    if not is_line:
+        return segment_keep(line, start, end, valid, np.arange(m), x1, i, tol)
+    keep = np.empty(m, dtype=np.bool_)
+    for k in range(m):
+        keep[k] = abs(line[k, 0] * x1[i[k], 0] + line[k, 1] * x1[i[k], 1] + line[k, 2]) <= tol
+    return keep
+
+
 # -- many small pairs ------------------------------------------------------------------------
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _both_ways(x1, x2, A, B, norm, root, H, b, zr1, rect1, Hi, bi, zr2, rect2, eps, tol, pad_j, loose, mutual_rule,
@@ -210,13 +243,7 @@ def _both_ways(x1, x2, A, B, norm, root, H, b, zr1, rect1, Hi, bi, zr2, rect2, e
             ki[m], kj[m], kr[m] = i[k], j[k], r[k]
             m += 1
     # the reverse test: each match's keypoint of image 2 must have its query on its own segment in image 1
-    y = np.empty((m, 2))
-    for k in range(m):
-        y[k, 0], y[k, 1] = x2[kj[k], 0], x2[kj[k], 1]
-    start, end, line = np.empty((m, 2)), np.empty((m, 2)), np.empty((m, 3))
-    p_inf, a, valid = np.empty((m, 2)), np.empty((m, 3)), np.empty(m, dtype=np.bool_)
-    _gk._segments(0, m, y, Hi, bi, zr2[0:1], zr2[1:2], rect2, eps, start, end, valid, line, p_inf, a)
-    inlier = segment_keep(line, start, end, valid, np.arange(m), x1, ki, tol)
+    inlier = reverse_keep(x1, x2, ki, kj, Hi, bi, zr2[0:1], zr2[1:2], rect2, eps, tol, False)
     return ki, kj, kr, inlier
 
 
