@@ -7,20 +7,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import threads
-from ..geometry import CHEIRALITY_EPS
-from ..matching import _pair_kernel as _pk
-from ..matching import guided, small
+from ..matching import fused, guided, small
 from ..matching.config import AcceptRule, SearchConfig
-from ..matching.distances import PAD_CHUNK, PAD_ROUND, Distances
+from ..matching.distances import Distances
 from ..matching.filtering import keep_mask
 from .store import FeatureStore
 from .views import View
 
 __all__ = ["PairJob", "PairResult", "match_pair", "match_pairs", "pair_inputs"]
-
-#: Queries per pencil bucket of a pair's candidate index (:func:`~episeg_cv.matching.guided.match`'s default).
-BUCKET_SIZE = 64
-
 
 @dataclass(frozen=True)
 class PairJob:
@@ -136,23 +130,11 @@ def _stages(job: PairJob, inputs, g):
 
 def _fused(job: PairJob, g, image1: tuple, image2: tuple) -> PairResult:
     """:func:`match_pair` in one compiled call on this thread, without the GIL
-    (:func:`episeg_cv.matching._pair_kernel.match_pair`): the same result as :func:`_stages` gives.
+    (:func:`episeg_cv.matching.fused.match_pair`): the same result as :func:`_stages` gives.
     ``image1`` / ``image2``: ``(points, scoring rows, stored indices or None)`` (:func:`_image_rows`)."""
     (q1, a1, idx1), (q2, a2, idx2) = image1, image2
-    rule, norm = job.rule, job.store.norm
-    n_pad = min(rule.pad, len(q2))
-    pad_j = guided.padding_references(0, len(q2), n_pad) if n_pad and len(q1) else np.zeros(0, dtype=np.int64)
-    gi = g.inverse()
-    with threads.blas_limit(1):  # (the padding's products, as in Distances.nearest_excluding)
-        pairs, ratios, keep = _pk.match_pair(
-            np.ascontiguousarray(q1), np.ascontiguousarray(q2), a1, a2, _pk.NORM_CODES[norm], norm == "l2",
-            np.ascontiguousarray(g.infinity_homography), g.epipole_homogeneous,
-            np.ascontiguousarray(gi.infinity_homography), gi.epipole_homogeneous,
-            np.array(job.view1.depth_range, dtype=np.float64), np.array(job.view2.depth_range, dtype=np.float64),
-            np.array(g.image_size1, dtype=np.float64), np.array(g.image_size2, dtype=np.float64), CHEIRALITY_EPS,
-            float(job.search.tol), job.search.constraint == "line", BUCKET_SIZE, pad_j,
-            float(rule.ratio if job.loose is None else job.loose), bool(rule.mutual or rule.cross_check),
-            bool(rule.cross_check), job.loose is not None, PAD_CHUNK, PAD_ROUND)
+    pairs, ratios, keep = fused.match_pair(q1, a1, q2, a2, job.store.norm, g, job.view1.depth_range,
+                                           job.view2.depth_range, job.search, job.rule, job.loose)
     return _result(job, g, q1, pairs, keep, ratios if job.loose is not None else None, idx1, idx2)
 
 
