@@ -456,7 +456,7 @@ class _Run:
         t0 = time.perf_counter()
         if self.search.auto is not None:  # one band for every pair, found before any is matched
             band = collection_band(views, self.store, self.pair_list, self.search, self.rule, self.search.auto,
-                                   imap=runner.imap, per_task=runner.spread)
+                                   imap=runner.imap_here, per_task=runner.spread)
             report.band = band.as_dict()
             self.search = self.search.replace(tol=band.tol)
             if self.consensus is not None and self.consensus.tau is None:

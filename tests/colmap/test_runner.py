@@ -76,6 +76,22 @@ def test_inline_items_run_in_this_thread_and_the_others_on_the_pool():
     assert {t for t, _ in pooled} <= {f"episeg-worker_{k}" for k in range(2)} and {n for _, n in pooled} == {1}
 
 
+def test_items_here_use_the_pool_of_threads_or_this_thread_and_never_a_cluster():
+    runner = Runner(2)
+    try:
+        with runner.limits():
+            pooled = set(runner.imap_here(_seen, range(8)))
+    finally:
+        runner.close()
+    assert {t for t, _ in pooled} <= {f"episeg-worker_{k}" for k in range(2)} and {n for _, n in pooled} == {1}
+    one = Runner(1)
+    with one.limits():
+        assert set(one.imap_here(_seen, range(3))) == {(threading.current_thread().name, 1)}
+    fake = Runner.__new__(Runner)  # a Dask runner's state, without a cluster: its submit would fail
+    fake._client, fake._pool = object(), None
+    assert list(fake.imap_here(lambda x: x * 2, range(3))) == [0, 2, 4]
+
+
 @pytest.mark.parametrize("n_items, workers, want", [
     (276, 2, 35), (276, 8, 9), (276, 16, DASK_CHUNK_MIN), (10, 2, DASK_CHUNK_MIN), (100000, 2, DASK_CHUNK_MAX), (0, 2, DASK_CHUNK_MIN),
 ])
