@@ -88,7 +88,7 @@ def _distance(a, b, norm):
 @nb.njit(cache=True, nogil=True)
 def _group(g, P, grp_ptr, grp_nodes, node_image, node_kp, node_xy, kp_xy, kp_ptr, descriptors, norm, sizes, tau,
            cell, cell_ptr, cell_off, cell_nx, cell_items, has, X, best_kp, best_d):
-    """Row ``g`` of :func:`nearby`'s outputs."""
+    """Row ``g`` of :func:`nearby`'s outputs (``X``: row ``g`` of its points)."""
     a, b = grp_ptr[g], grp_ptr[g + 1]
     if not triangulate_point(P, node_image, node_xy, grp_nodes[a:b], b - a, X):
         return
@@ -140,31 +140,32 @@ def _group(g, P, grp_ptr, grp_nodes, node_image, node_kp, node_xy, kp_xy, kp_ptr
 
 @nb.njit(cache=True, nogil=True)
 def _outputs(n_groups, n_views):
-    return np.full((n_groups, n_views), -1, np.int64), np.full((n_groups, n_views), np.inf)
+    return (np.full((n_groups, n_views), -1, np.int64), np.full((n_groups, n_views), np.inf),
+            np.full((n_groups, 3), np.nan))
 
 
 @nb.njit(cache=True, nogil=True)
 def nearby(P, grp_ptr, grp_nodes, node_image, node_kp, node_xy, kp_xy, kp_ptr, descriptors, norm, sizes, tau, cell,
            cell_ptr, cell_off, cell_nx, cell_items):
     """Each group's nearest keypoint, by descriptor, near its projection in each view it is not in:
-    ``(best_kp (G, n_views) int64, best_d (G, n_views))``.
+    ``(best_kp (G, n_views) int64, best_d (G, n_views), points (G, 3))``.
 
     Group ``g``'s point is triangulated from its observations ``grp_nodes[grp_ptr[g]:grp_ptr[g + 1]]``;
     in each view ``k`` that holds none of them, where the point lies in front of the camera and inside the
     image, the keypoints within ``tau`` pixels of its projection are compared with the group's
     descriptors (a keypoint's distance to the group: the smallest to any of its observations).
     ``best_kp[g, k]`` is the nearest (ties: the lower index; -1: none, or the view holds the group),
-    ``best_d`` its distance (inf: none).
+    ``best_d`` its distance (inf: none), ``points`` the triangulated points (NaN where triangulation
+    failed: no keypoint was then looked for).
     """
     n_groups = grp_ptr.shape[0] - 1
     n_views = P.shape[0]
-    best_kp, best_d = _outputs(n_groups, n_views)
+    best_kp, best_d, points = _outputs(n_groups, n_views)
     has = np.zeros(n_views, np.bool_)
-    X = np.empty(3)
     for g in range(n_groups):
         _group(g, P, grp_ptr, grp_nodes, node_image, node_kp, node_xy, kp_xy, kp_ptr, descriptors, norm, sizes, tau,
-               cell, cell_ptr, cell_off, cell_nx, cell_items, has, X, best_kp, best_d)
-    return best_kp, best_d
+               cell, cell_ptr, cell_off, cell_nx, cell_items, has, points[g], best_kp, best_d)
+    return best_kp, best_d, points
 
 
 @nb.njit(cache=True, nogil=True, parallel=True)
@@ -173,14 +174,13 @@ def nearby_parallel(P, grp_ptr, grp_nodes, node_image, node_kp, node_xy, kp_xy, 
     """:func:`nearby` on threads, in ``blocks`` blocks of groups (each group writes its own row only)."""
     n_groups = grp_ptr.shape[0] - 1
     n_views = P.shape[0]
-    best_kp, best_d = _outputs(n_groups, n_views)
+    best_kp, best_d, points = _outputs(n_groups, n_views)
     for blk in prange(blocks):
         has = np.zeros(n_views, np.bool_)
-        X = np.empty(3)
         for g in range(blk * n_groups // blocks, (blk + 1) * n_groups // blocks):
             _group(g, P, grp_ptr, grp_nodes, node_image, node_kp, node_xy, kp_xy, kp_ptr, descriptors, norm, sizes,
-                   tau, cell, cell_ptr, cell_off, cell_nx, cell_items, has, X, best_kp, best_d)
-    return best_kp, best_d
+                   tau, cell, cell_ptr, cell_off, cell_nx, cell_items, has, points[g], best_kp, best_d)
+    return best_kp, best_d, points
 
 
 @nb.njit(cache=True, nogil=True)

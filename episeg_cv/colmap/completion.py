@@ -118,7 +118,6 @@ import numpy as np
 
 from .. import threads
 from . import _completion_kernel as _kernel
-from ._consensus_kernel import triangulate_point
 from .views import PINHOLE_MODELS
 
 __all__ = ["complete_groups", "photo_consistency", "pinhole_image", "pinhole_images", "NORM_CODES", "MIN_NCC",
@@ -226,14 +225,11 @@ def complete_groups(P, centers, sizes, node_image, node_kp, node_xy, group, grou
     sub_ptr = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
     sub_nodes = order[np.repeat(grp_ptr[sel] - sub_ptr[:-1], counts) + np.arange(sub_ptr[-1])]
     grid = _kernel.build_grid(kp_xy, kp_ptr, sizes, tau)
-    best_kp, best_d = threads.run(
+    best_kp, best_d, X = threads.run(
         _kernel.nearby, _kernel.nearby_parallel, len(sel), P, sub_ptr, sub_nodes, node_image, node_kp, node_xy,
         kp_xy, kp_ptr, nb.typed.List(des), NORM_CODES[norm], sizes, tau, *grid)
     if images is not None:
         s, k = np.nonzero(best_kp >= 0)
-        X = np.zeros((len(sel), 3))
-        for g in np.unique(s):
-            triangulate_point(P, node_image, node_xy, sub_nodes[sub_ptr[g]:sub_ptr[g + 1]], counts[g], X[g])
         width = int(counts.max()) if len(counts) else 1
         obs_image = np.full((len(s), width), -1, np.int64)
         for t in range(width):
