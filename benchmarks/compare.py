@@ -377,7 +377,10 @@ NOPOSE_PAIRS = {"quick": [("synthetic", "forward"), ("motorcycle", None), ("repe
                           ("dino", (15, 0))],
                 "full": [("synthetic", "forward"), ("synthetic", "lateral"), ("synthetic", "converging"),
                          ("synthetic", "backward"), ("motorcycle", None), ("repetitive", "forward"),
-                         ("repetitive", "lateral"), ("dino", (15, 0)), ("dino", (8, 9))]}
+                         ("repetitive", "lateral"), ("dino", (15, 0)), ("dino", (8, 9)),
+                         # held out: a pose and two scene seeds that no constant was chosen on
+                         ("repetitive", ("backward", 0))] + [("repetitive", (pose, seed)) for seed in (1, 2)
+                                                             for pose in ("forward", "lateral", "backward")]}
 
 
 def uncertain_sections(sections, quick: bool, dino_dir: Path, quiet: bool) -> tuple[list, dict]:
@@ -393,7 +396,8 @@ def uncertain_sections(sections, quick: bool, dino_dir: Path, quiet: bool) -> tu
             if kind == "synthetic":
                 cache[key] = _uncertain.synthetic(arg, size)
             elif kind == "repetitive":
-                cache[key] = _uncertain.repetitive(arg, size)
+                pose, seed = (arg, 0) if isinstance(arg, str) else arg
+                cache[key] = _uncertain.repetitive(pose, size, seed)
             elif kind == "motorcycle":
                 cache[key] = _uncertain.motorcycle()
             else:
