@@ -76,6 +76,7 @@ def write_markdown(path: Path, res: dict) -> None:
              "paired bootstrap interval in brackets; the goal is judged on the median. The peer goal counts as met "
              "at a size when our segment or our line is faster with at least the peer's correct matches (our line "
              "has the peer tree's candidates, hence its matches).\n")
+    L += _bounds(res)
 
     # -- setup
     L.append("## Setup\n")
@@ -252,3 +253,33 @@ def write_markdown(path: Path, res: dict) -> None:
         L.append(f"| {k} | {fmt_ms(v)} |")
     L.append("")
     path.write_text("\n".join(L))
+
+
+def _bounds(res: dict) -> list:
+    """What the cv2 objects alone leave of the unmet goals, from this run's own stage times (pose of the stage
+    profile, segment, n = 10k): the ``cv2.DMatch`` lists are made in Python and hold the GIL, so no thread
+    count shortens them."""
+    st, am = res.get("stages"), res.get("amdahl") or {}
+    if not st or st["pose"] not in am or "segment" not in st["constraints"]:
+        return []
+    pose, r = st["pose"], st["constraints"]["segment"]["by_threads"]
+    rows = am[pose]
+    L = [f"**What bounds the unmet goals** (pose `{pose}`, segment, n = {kilo(st['n1'])}, this run's medians). "
+         "The `cv2.DMatch` objects are made in Python under the GIL, so no thread count shortens them:", ""]
+    for nt, key in ((1, "t1_s"), (2, "t2_s")):
+        if str(nt) not in r:
+            continue
+        budget = rows["bf_knn"][key] / GOAL_X
+        for what, method in (("knnMatch", "segment_knn"), ("match", "segment_match")):
+            dm = r[str(nt)]["stages_wall_s"][f"DMatch ({what})"]
+            left = budget - dm
+            L.append(f"- {nt} thread(s), `{what}`: {GOAL_X:.0f}x BFMatcher leaves {fmt_ms(budget)} ms; its DMatch "
+                     f"lists take {fmt_ms(dm)} ms of it, "
+                     + (f"so everything else must fit in {fmt_ms(left)} ms (measured: "
+                        f"{fmt_ms(rows[method][key] - dm)} ms)." if left > 0 else "**more than the whole budget**."))
+    for what, method in (("knnMatch", "segment_knn"), ("match", "segment_match")):
+        t1, dm = rows[method]["t1_s"], r["1"]["stages_wall_s"][f"DMatch ({what})"]
+        best = t1 / (dm + (t1 - dm) / 2)
+        L.append(f"- 2 threads against one, `{what}`: even if all but the DMatch lists ({fmt_ms(dm)} of "
+                 f"{fmt_ms(t1)} ms) halved, the speed-up would be {best:.2f}x (goal {GOAL_SCALING}x).")
+    return L + [""]
