@@ -354,3 +354,135 @@ def additions(P, centers, grp_ptr, grp_nodes, node_image, node_kp, node_xy, grou
                 b = nxt[b]
             a = nxt[a]
     return edge_a[:e], edge_b[:e], views, n_added, n_merged
+
+
+@nb.njit(cache=True, nogil=True)
+def _lerp(a, p, q):
+    """``p + a (q - p)`` in float32 with one rounding of the product and sum, as OpenCV's ``remap`` computes
+    it (a fused multiply-add)."""
+    return np.float32(np.float64(a) * np.float64(q - p) + np.float64(p))
+
+
+@nb.njit(cache=True, nogil=True)
+def sample(pixels, off, w, h, x, y):
+    """Bilinear sample of the float32 image ``pixels[off:off + w h]`` (row-major, ``w`` by ``h``) at pixel
+    ``(x, y)`` (pixel centres at integers), as ``cv2.remap(..., INTER_LINEAR, BORDER_CONSTANT, NaN)`` on
+    float32 maps gives it: the position rounded to float32, NaN unless its four neighbours are in the image."""
+    xf = np.float32(x)
+    yf = np.float32(y)
+    if not (xf >= 0 and xf < w - 1 and yf >= 0 and yf < h - 1):  # (False for NaN)
+        return np.nan
+    x0 = np.floor(xf)
+    y0 = np.floor(yf)
+    a = np.float32(xf - x0)
+    b = np.float32(yf - y0)
+    i = off + np.int64(y0) * w + np.int64(x0)
+    top = _lerp(a, pixels[i], pixels[i + 1])
+    bottom = _lerp(a, pixels[i + w], pixels[i + w + 1])
+    return np.float64(_lerp(b, top, bottom))
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _photo(t, Kinv, P, centers, X, k, y, obs_image, pixels, im_off, im_w, im_h, half, cos_max, ref, plane, other):
+    """The least NCC of proposal ``t`` over its group's views (:func:`photo`); ``ref``, ``plane``, ``other``
+    are scratch arrays of ``S`` samples."""
+    v = k[t]
+    C = centers[v]
+    n = C - X[t]
+    n = n / np.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
+    seen = False
+    for a in range(obs_image.shape[1]):  # the angle test first: any view beyond it gives NaN
+        u = obs_image[t, a]
+        if u < 0:
+            continue
+        seen = True
+        d = centers[u] - X[t]
+        d = d / np.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+        if not (d[0] * n[0] + d[1] * n[1] + d[2] * n[2] >= cos_max):
+            return np.nan
+    if not seen:
+        return np.inf
+    side = 2 * half + 1
+    S = side * side
+    num = n[0] * (X[t, 0] - C[0]) + n[1] * (X[t, 1] - C[1]) + n[2] * (X[t, 2] - C[2])
+    mean = 0.0
+    for s in range(S):
+        px = y[t, 0] + (s % side - half)
+        py = y[t, 1] + (s // side - half)
+        ref[s] = sample(pixels, im_off[v], im_w[v], im_h[v], px, py)
+        if np.isnan(ref[s]):
+            return np.nan
+        mean += ref[s]
+        rx = Kinv[v, 0, 0] * px + Kinv[v, 0, 1] * py + Kinv[v, 0, 2]
+        ry = Kinv[v, 1, 0] * px + Kinv[v, 1, 1] * py + Kinv[v, 1, 2]
+        rz = Kinv[v, 2, 0] * px + Kinv[v, 2, 1] * py + Kinv[v, 2, 2]
+        depth = num / (n[0] * rx + n[1] * ry + n[2] * rz)
+        plane[s, 0] = C[0] + depth * rx
+        plane[s, 1] = C[1] + depth * ry
+        plane[s, 2] = C[2] + depth * rz
+    mean /= S
+    ref_ss = 0.0
+    for s in range(S):
+        ref[s] -= mean
+        ref_ss += ref[s] * ref[s]
+    least = np.inf
+    for a in range(obs_image.shape[1]):
+        u = obs_image[t, a]
+        if u < 0:
+            continue
+        Pu = P[u]
+        mean = 0.0
+        for s in range(S):
+            hx = Pu[0, 0] * plane[s, 0] + Pu[0, 1] * plane[s, 1] + Pu[0, 2] * plane[s, 2] + Pu[0, 3]
+            hy = Pu[1, 0] * plane[s, 0] + Pu[1, 1] * plane[s, 1] + Pu[1, 2] * plane[s, 2] + Pu[1, 3]
+            hz = Pu[2, 0] * plane[s, 0] + Pu[2, 1] * plane[s, 1] + Pu[2, 2] * plane[s, 2] + Pu[2, 3]
+            other[s] = sample(pixels, im_off[u], im_w[u], im_h[u], hx / hz, hy / hz)
+            if np.isnan(other[s]):
+                return np.nan
+            mean += other[s]
+        mean /= S
+        ss = 0.0
+        cross = 0.0
+        for s in range(S):
+            o = other[s] - mean
+            ss += o * o
+            cross += ref[s] * o
+        den = np.sqrt(ref_ss * ss)
+        if not den > 1e-6:
+            return np.nan
+        least = min(least, cross / den)
+    return least
+
+
+@nb.njit(cache=True, nogil=True)
+def photo(Kinv, P, centers, X, k, y, obs_image, pixels, im_off, im_w, im_h, half, cos_max):
+    """The photometric check of every proposal (:func:`.completion.photo_consistency`): ``(T,)`` float64.
+
+    Proposal ``t``'s ``(2 half + 1)^2`` pixels round ``y[t]`` in view ``k[t]`` (row by row) are cast onto
+    the plane through ``X[t]`` facing the camera (``Kinv``: the inverses of ``P[:, :, :3]``) and projected
+    into each view ``obs_image[t, a]`` (-1: none); the least NCC (inf: no view; NaN: a view at an angle
+    cosine below ``cos_max``, a sample beyond an image, a flat patch). Images: view ``v``'s float32 pixels
+    are ``pixels[im_off[v]:]``, ``im_w[v]`` by ``im_h[v]``.
+    """
+    T = k.shape[0]
+    out = np.empty(T)
+    S = (2 * half + 1) ** 2
+    ref, plane, other = np.empty(S), np.empty((S, 3)), np.empty(S)
+    for t in range(T):
+        out[t] = _photo(t, Kinv, P, centers, X, k, y, obs_image, pixels, im_off, im_w, im_h, half, cos_max, ref,
+                        plane, other)
+    return out
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def photo_parallel(Kinv, P, centers, X, k, y, obs_image, pixels, im_off, im_w, im_h, half, cos_max, blocks):
+    """:func:`photo` on threads, in ``blocks`` blocks of proposals."""
+    T = k.shape[0]
+    out = np.empty(T)
+    S = (2 * half + 1) ** 2
+    for blk in prange(blocks):
+        ref, plane, other = np.empty(S), np.empty((S, 3)), np.empty(S)
+        for t in range(blk * T // blocks, (blk + 1) * T // blocks):
+            out[t] = _photo(t, Kinv, P, centers, X, k, y, obs_image, pixels, im_off, im_w, im_h, half, cos_max,
+                            ref, plane, other)
+    return out
