@@ -50,6 +50,21 @@ the least accurate. Why distinct views: templeSparseRing has two images taken
 from the same place, whose matches made any third image look like a check.
 Measured (``benchmarks/colmap.py`` and held-out rooms and templeSparseRing,
 issue 14): see the README.
+
+Why only mutual candidates as edges (measured, rejected): adding each
+query's nearest candidate and each keypoint's nearest query when they are
+not mutual (kept only in groups of ``min_views`` distinct views) gave 1-2 %
+more accurate 3D points with COLMAP's features (dinoSparseRing 325 -> 330,
+rooms 12/7 4460 -> 4506 and 10/3 3686 -> 3733), about nothing on top of
+the completion, and cost accurate fraction: 1.8 points end to end on the
+held-out templeSparseRing (98.3 -> 96.5 %), 1 point on a held-out 8-view
+room. Adding the second-nearest candidates cost 3.7-7.4 points of it. On the
+12-view room, the views a true track misses are mostly not among any of
+the descriptor candidates (a quarter of the true matches: not the nearest
+on the segment, or farther than a padding reference), so more
+nearest-neighbour edges cannot reach them; only the projection of a group
+into the other views can (the completion). Scratch scripts:
+``/work/scratch/h26e/proto.py``, ``gt.py``, ``gtmiss.py``.
 """
 
 from __future__ import annotations
