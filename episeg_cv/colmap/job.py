@@ -16,6 +16,7 @@ from .views import View
 
 __all__ = ["PairJob", "PairResult", "match_pair", "match_pairs", "pair_inputs"]
 
+
 @dataclass(frozen=True)
 class PairJob:
     """Everything a worker needs to match one pair; small and picklable.

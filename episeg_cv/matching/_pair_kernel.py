@@ -175,15 +175,10 @@ def match_pair(x1, x2, A, B, norm, root, H, b, Hi, bi, z1, z2, size1, size2, eps
         best = np.ascontiguousarray(back[:, 0])
     i, j, r, mutual = _sk.nearest_ratios(idx, sc, best, A, B, norm, root, pad_j, ratio, mutual_rule, True, chunk,
                                          round_to)
-    m = 0
-    for k in range(i.shape[0]):
-        m += (r[k] < ratio or (ratio >= 1 and not strict)) and (mutual[k] or not mutual_rule)
-    pairs, kr = np.empty((m, 2), dtype=np.int64), np.empty(m)
-    m = 0
-    for k in range(i.shape[0]):
-        if (r[k] < ratio or (ratio >= 1 and not strict)) and (mutual[k] or not mutual_rule):
-            pairs[m, 0], pairs[m, 1], kr[m] = i[k], j[k], r[k]
-            m += 1
-    inlier = _sk.reverse_keep(x1, x2, pairs[:, 0].copy(), pairs[:, 1].copy(), Hi, bi, z2[0:1], z2[1:2],
-                              _rect(size1[0], size1[1], tol), eps, tol, is_line)
-    return pairs, kr, inlier
+    ok = _sk.rule_passes(r, mutual, ratio, mutual_rule, strict)
+    ki, kj = i[ok], j[ok]
+    inlier = _sk.reverse_keep(x1, x2, ki, kj, Hi, bi, z2[0:1], z2[1:2], _rect(size1[0], size1[1], tol), eps, tol,
+                              is_line)
+    pairs = np.empty((ki.shape[0], 2), dtype=np.int64)
+    pairs[:, 0], pairs[:, 1] = ki, kj
+    return pairs, r[ok], inlier

@@ -27,7 +27,7 @@ from .. import _geometry_kernels as _gk
 from . import _index_kernels as _ik
 from . import _kernels
 
-__all__ = ["nearest", "nearest_ratios", "reverse_keep", "segment_keep", "pairs", "pairs_parallel"]
+__all__ = ["nearest", "nearest_ratios", "rule_passes", "reverse_keep", "segment_keep", "pairs", "pairs_parallel"]
 
 
 @nb.njit(cache=True, nogil=True)
@@ -205,6 +205,16 @@ def segment_keep(line, start, end, valid, i, y, j, tol):
     return keep
 
 
+@nb.njit(cache=True, nogil=True)
+def rule_passes(ratios, mutual, ratio, mutual_rule, strict):
+    """``(K,)`` bool: the matches the rule keeps, a ratio below ``ratio`` (any ratio when ``ratio >= 1``
+    and not ``strict``) and, with ``mutual_rule``, mutual."""
+    keep = np.empty(ratios.shape[0], dtype=np.bool_)
+    for k in range(ratios.shape[0]):
+        keep[k] = (ratios[k] < ratio or (ratio >= 1 and not strict)) and (mutual[k] or not mutual_rule)
+    return keep
+
+
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def reverse_keep(x1, x2, i, j, Hi, bi, zmin, zmax, rect1, eps, tol, is_line):
     """``(K,)`` bool: the query ``x1[i[k]]`` lies within ``tol`` of the segment (or, ``is_line``, the line) in
@@ -233,15 +243,8 @@ def _both_ways(x1, x2, A, B, norm, root, H, b, zr1, rect1, Hi, bi, zr2, rect2, e
     """One pair of :func:`pairs`: ``(i, j, ratio, inlier)`` of the candidates with ratio below ``loose``."""
     i, j, r, mu, _ = nearest(x1, x2, A, B, norm, root, H, b, zr1[0:1], zr1[1:2], rect1, eps, tol, pad_j, loose,
                              mutual_rule, True, chunk, round_to)
-    m = 0
-    for k in range(i.shape[0]):
-        m += r[k] < loose and (mu[k] or not mutual_rule)
-    ki, kj, kr = np.empty(m, dtype=np.int64), np.empty(m, dtype=np.int64), np.empty(m)
-    m = 0
-    for k in range(i.shape[0]):
-        if r[k] < loose and (mu[k] or not mutual_rule):
-            ki[m], kj[m], kr[m] = i[k], j[k], r[k]
-            m += 1
+    ok = rule_passes(r, mu, loose, mutual_rule, True)
+    ki, kj, kr = i[ok], j[ok], r[ok]
     # the reverse test: each match's keypoint of image 2 must have its query on its own segment in image 1
     inlier = reverse_keep(x1, x2, ki, kj, Hi, bi, zr2[0:1], zr2[1:2], rect2, eps, tol, False)
     return ki, kj, kr, inlier
