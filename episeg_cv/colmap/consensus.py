@@ -63,8 +63,7 @@ room. Adding the second-nearest candidates cost 3.7-7.4 points of it. On the
 the descriptor candidates (a quarter of the true matches: not the nearest
 on the segment, or farther than a padding reference), so more
 nearest-neighbour edges cannot reach them; only the projection of a group
-into the other views can (the completion). Scratch scripts:
-``/work/scratch/h26e/proto.py``, ``gt.py``, ``gtmiss.py``.
+into the other views can (the completion). (Scratch runs, issue 14.)
 """
 
 from __future__ import annotations
@@ -117,8 +116,10 @@ class TrackConsensus:
         for :func:`~episeg_cv.colmap.match_model`, each proposal checked against
         the images (:func:`~episeg_cv.colmap.completion.photo_consistency`).
         Default False: it adds 3-7 % accurate 3D points end to end at the same
-        accurate fraction (within 0.5 points on six collections), but the check
-        made the 24-view room's verification about 5x slower (0.23 s -> 1.1 s).
+        accurate fraction (within 0.5 points on six collections), but it makes
+        the verification slower: on a 24-view room 0.25 -> 0.54 s of CPU, and on
+        dinoSparseRing matching 0.05 -> 0.12-0.15 s, mostly reading the images
+        (the matching-time goal there is 0.055 s).
 
     Examples
     --------
