@@ -1,0 +1,128 @@
+"""Pose noise in pixels, for ``benchmarks/noisy_poses.py``: per-image errors that mean the same on every lens.
+
+Each view gets a rotation error of angle ``theta`` about a random axis and a
+camera-centre error of length ``d`` in a random direction, with
+
+- ``f * theta = p`` pixels (a rotation by ``theta`` moves the image of every
+  point by about ``f * theta`` near the image centre), and
+- ``f * d / z = p`` pixels, ``z`` the view's typical scene depth (a sideways
+  move by ``d`` shifts the image of a point at depth ``z`` by ``f * d / z``;
+  the part of ``d`` along the viewing direction moves it less),
+
+``f = K[0, 0]``. The rotation error is applied in the camera frame
+(``R' = dR @ R``) and the centre moves in the world frame (``C' = C + d u``,
+``t' = -R' C'``). Also here: the typical depth of a view of dinoSparseRing
+(distance from the camera centre to the centre of the object's bounding box)
+and of a rendered room (median finite rendered depth), and the relative
+rotation errors of a set of poses against the true ones.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import cv2
+import numpy as np
+
+
+def _unit(rng) -> np.ndarray:
+    u = rng.normal(size=3)
+    return u / np.linalg.norm(u)
+
+
+def perturb_views(views, pixels: float, depths, seed) -> list:
+    """Views with per-image pose errors of ``pixels`` px in rotation and in camera centre.
+
+    Parameters
+    ----------
+    views : sequence of episeg_cv.colmap.View
+        True poses (world-to-camera, ``X_cam = R @ X_world + t``).
+    pixels : float
+        ``p >= 0``: rotation angle ``p / f`` radians about a random axis, centre
+        moved by ``p * z / f`` (world units) in a random direction; ``f = K[0, 0]``.
+    depths : sequence of float
+        ``z`` per view, world units (its typical scene depth), same order as ``views``.
+    seed : int or sequence of int
+        Seed of ``numpy.random.default_rng``; the same seed gives the same errors.
+
+    Returns
+    -------
+    list of View
+        Copies of ``views`` with ``R`` and ``t`` replaced (``pixels == 0``: the same poses).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from episeg_cv.colmap import View
+    >>> v = View("a.png", 1, 1, np.diag([500.0, 500.0, 1.0]), np.eye(3), np.zeros(3), (640, 480))
+    >>> w = perturb_views([v], 2.0, [5.0], seed=0)[0]
+    >>> round(rotation_angle(w.R @ v.R.T) * 500, 6)  # f * theta, px
+    2.0
+    >>> round(float(np.linalg.norm(w.center - v.center)) * 500 / 5.0, 6)  # f * d / z, px
+    2.0
+    """
+    if not np.isfinite(pixels) or pixels < 0:
+        raise ValueError(f"pixels must be a finite number >= 0, got {pixels!r}")
+    depths = np.asarray(depths, dtype=float)
+    if depths.shape != (len(views),) or not np.all(np.isfinite(depths) & (depths > 0)):
+        raise ValueError(f"depths must hold one positive depth per view ({len(views)}), got shape {depths.shape}")
+    rng = np.random.default_rng(seed)
+    out = []
+    for v, z in zip(views, depths):
+        f = float(v.K[0, 0])
+        dR = cv2.Rodrigues(_unit(rng) * (pixels / f))[0]
+        R = dR @ v.R
+        c = v.center + _unit(rng) * (pixels * z / f)
+        out.append(dataclasses.replace(v, R=R, t=-R @ c))
+    return out
+
+
+def rotation_angle(R) -> float:
+    """Angle of a rotation matrix, radians, in ``[0, pi]``.
+
+    >>> round(rotation_angle(cv2.Rodrigues(np.array([0.0, 0.3, 0.0]))[0]), 12)
+    0.3
+    """
+    R = np.asarray(R, dtype=float)
+    sine = np.linalg.norm([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / 2.0
+    return float(np.arctan2(sine, (np.trace(R) - 1.0) / 2.0))  # exact near 0, unlike arccos
+
+
+def relative_rotation_errors(views, true_views) -> np.ndarray:
+    """Per pair ``a < b``, the angle between the relative rotations of ``views`` and of ``true_views``, degrees.
+
+    The relative rotation of a pair is ``R_b @ R_a.T``; the error does not
+    depend on the world frame, so poses aligned to another frame by a
+    similarity compare as they are. Views are matched by name.
+
+    Returns
+    -------
+    (n * (n - 1) / 2,) float64
+
+    >>> import numpy as np
+    >>> from episeg_cv.colmap import View
+    >>> K = np.diag([500.0, 500.0, 1.0])
+    >>> a = [View(n, i, 1, K, np.eye(3), np.zeros(3), (640, 480)) for i, n in enumerate("xyz")]
+    >>> b = [dataclasses.replace(v, R=cv2.Rodrigues(np.array([0.01, 0, 0]))[0]) for v in a]  # one common turn
+    >>> relative_rotation_errors(b, a).round(9).tolist()
+    [0.0, 0.0, 0.0]
+    """
+    by_name = {v.name: v for v in views}
+    T = list(true_views)
+    errors = []
+    for i in range(len(T)):
+        for j in range(i + 1, len(T)):
+            ta, tb, ea, eb = T[i], T[j], by_name[T[i].name], by_name[T[j].name]
+            errors.append(rotation_angle((tb.R @ ta.R.T).T @ (eb.R @ ea.R.T)))
+    return np.degrees(np.array(errors, dtype=float))
+
+
+def box_depths(views, box) -> np.ndarray:
+    """Distance from each camera centre to the centre of the box ``(low, high)`` (world units), ``(n,)``."""
+    centre = (np.asarray(box[0], float) + np.asarray(box[1], float)) / 2.0
+    return np.array([np.linalg.norm(v.center - centre) for v in views])
+
+
+def median_depths(depth_maps) -> np.ndarray:
+    """Median of the finite depths of each rendered depth map, ``(n,)``."""
+    return np.array([float(np.median(d[np.isfinite(d)])) for d in depth_maps])
