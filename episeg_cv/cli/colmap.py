@@ -59,7 +59,7 @@ def add_parser(sub, parents) -> None:
                         "or 'ZMIN ZMAX' for every image, in the unit of the poses (default: auto)")
     p.add_argument("--tol", type=tol_arg, default=COLLECTION_TOL, metavar="PX|auto",
                    help="pixel tolerance of the constraint, or 'auto' (default): one band for the collection, from "
-                        "the confident matches of a few pairs around the given poses (which are not corrected)")
+                        "the confident matches of a few pairs around the given poses (which are not corrected; see --refine-poses)")
     p.add_argument("--ratio", type=ratio_arg, default=None,
                    help=f"ratio test of the guided matcher, with its mutual check (default: the matcher's, "
                         f"{AcceptRule().ratio})")
@@ -74,6 +74,11 @@ def add_parser(sub, parents) -> None:
                    help="after the track consensus, project each two-view track into the other views with the known "
                         "poses and add the keypoint found there if the image patches agree (off by default: "
                         "3-7 %% more accurate points, but a slower verification)")
+    p.add_argument("--refine-poses", action="store_true",
+                   help="first refine the poses from the collection's own matches (rounds of matching, "
+                        "triangulation and bundle adjustment, intrinsics fixed), then match with them; "
+                        "--triangulate uses the refined poses. For poses off by more than a pixel's worth "
+                        "(odometry, GPS/IMU); poses the matches do not determine better are kept, with a warning")
     p.add_argument("--workers", type=positive_int, default=None, metavar="N",
                    help="cores to use (default: every core): N threads for features and pairs, one pair per "
                         "thread; 1 runs everything on one core")
@@ -90,6 +95,10 @@ def add_parser(sub, parents) -> None:
                     help="replace an existing DB (with --features database: its matches and two-view geometries "
                          "only)")
     p.set_defaults(func=run)
+
+
+#: What each progress stage counts.
+UNITS = {"features": "images", "poses": "rounds"}
 
 
 def colmap_depth(values):
@@ -118,7 +127,7 @@ def run(args, console: Console) -> int:
     def progress(stage, done, total):
         bar = bars.get(stage) or bars.setdefault(stage, console.progress(total, stage))
         dt = time.perf_counter() - bar.t0
-        bar.step(f"{done / dt:.1f} {'images' if stage == 'features' else 'pairs'}/s" if dt > 0 else "")
+        bar.step(f"{done / dt:.1f} {UNITS.get(stage, 'pairs')}/s" if dt > 0 else "")
 
     search = SearchConfig(tol=args.tol, constraint=args.constraint)
     rule = AcceptRule(**({} if args.ratio is None else {"ratio": args.ratio}))
@@ -141,14 +150,15 @@ def run(args, console: Console) -> int:
             args.model, args.image_dir, args.database, pairs=args.pairs, neighbors=args.neighbors,
             features=features, depth_range=colmap_depth(args.depth_range), search=search, rule=rule, verify=verify,
             workers=args.workers, scheduler=args.scheduler, cache_dir=args.cache, resume=args.resume,
-            overwrite=args.overwrite, progress=progress,
+            overwrite=args.overwrite, refine_poses=args.refine_poses, progress=progress,
             log=lambda msg: print(f"{PROG}: {msg}", file=sys.stderr, flush=True))
     finally:
         for bar in bars.values():
             bar.close()
     console.print(report.summary())
     if args.triangulate:
-        rec = colmap.triangulate(args.database, args.model, args.image_dir, args.triangulate)
+        model = args.model if report.poses is None else report.poses.views
+        rec = colmap.triangulate(args.database, model, args.image_dir, args.triangulate)
         console.print(f"triangulated model in {args.triangulate}: {rec.num_points3D()} points, "
                       f"mean track length {rec.compute_mean_track_length():.2f}, "
                       f"mean reprojection error {rec.compute_mean_reprojection_error():.3f} px")

@@ -5,7 +5,8 @@ The data flows one way: :mod:`.views` (posed images) and :mod:`.pairs`
 (one pair, in a worker of :mod:`.runner`) -> :mod:`.consensus` (the
 candidates of all pairs verified with the poses) -> :mod:`.database` (one
 writer), driven by :mod:`.pipeline` (:func:`match_model`), then
-:mod:`.triangulation` (:func:`triangulate`). :mod:`.model` and :mod:`.poses`
+:mod:`.triangulation` (:func:`triangulate`); :mod:`.adjust` refines poses
+that are off before the final matching (``refine_poses=True``). :mod:`.model` and :mod:`.poses`
 read the inputs (a COLMAP model, a poses JSON, a Middlebury ``*_par.txt``);
 :mod:`.dbfeatures` reads COLMAP's own features from a database;
 :mod:`.synthetic` writes a rendered collection to try it on.
@@ -54,6 +55,7 @@ from .dbfeatures import DatabaseFeatureStore
 from .job import PairJob, PairResult, match_pair
 from .model import auto_depth_ranges, load_model
 from .pairs import exhaustive_pairs, index_pairs, neighbor_pairs, overlap_scores, read_pairs
+from .adjust import PoseAdjustment
 from .pipeline import EXHAUSTIVE_WARN, MatchReport, match_model
 from .poses import load_par, load_poses, save_poses
 from .triangulation import triangulate
@@ -65,4 +67,4 @@ __all__ = ["load_model", "load_poses", "save_poses", "auto_depth_ranges", "match
            "triangulate", "read_database_matches", "save_collection", "EXHAUSTIVE_WARN", "View", "read_pairs",
            "index_pairs", "exhaustive_pairs", "overlap_scores", "neighbor_pairs", "depth_range_from_depths",
            "is_bounded", "FeatureStore", "PairJob", "PairResult", "match_pair", "TrackConsensus", "verify_tracks",
-           "DatabaseFeatureStore", "load_par"]
+           "DatabaseFeatureStore", "load_par", "PoseAdjustment"]

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import shutil
 import sys
 import time
 from dataclasses import dataclass, field
@@ -32,6 +33,7 @@ from ..features import PRESETS, FeatureConfig
 from ..interrupts import terminate_as_interrupt
 from ..matching import small
 from ..matching.config import AcceptRule, AutoTol, SearchConfig, resolve
+from .adjust import PoseAdjustment, adjust_poses
 from .band import collection_band, sample_pairs
 from . import completion
 from .consensus import TrackConsensus, verify_and_complete, verify_tracks
@@ -111,6 +113,9 @@ class MatchReport:
         queries in each of up to :data:`LENGTH_PAIRS` pairs, evenly spread): ``"line"``
         (the whole epipolar line in the image), ``"segment"`` (the segment with depths in ``(0, inf)``) and
         ``"segment_in_depth_range"``. Empty when no pair was matched.
+    poses : PoseAdjustment or None
+        With ``refine_poses``: the refined views (``poses.views``, to triangulate with) and how
+        the refinement went; None otherwise.
     """
 
     database: Path
@@ -130,6 +135,7 @@ class MatchReport:
     depth_ranges: dict = field(default_factory=dict)
     band: dict = field(default_factory=dict)
     search_length: dict = field(default_factory=dict)
+    poses: PoseAdjustment | None = None
 
     def summary(self) -> str:
         lines = [f"database: {self.database}",
@@ -146,6 +152,8 @@ class MatchReport:
         if v.get("mode") == "tracks" and "edges" in v:
             lines.append(f"track consensus: {v['kept']} of {v['edges']} candidate matches kept, {v['groups']} "
                          f"tracks, {self.seconds_verify:.1f} s")
+        if self.poses is not None:
+            lines.append(self.poses.summary())
         bounded = sum(is_bounded(z) for z in self.depth_ranges.values())
         lines.append(f"depth ranges: {bounded} of {self.n_images} images bounded")
         L = self.search_length
@@ -213,7 +221,7 @@ def match_model(model, image_dir, database, *, pairs=None, neighbors=None,
                 features: FeatureConfig | str = "collection", depth_range="auto", search: SearchConfig | None = None,
                 rule: AcceptRule | None = None, verify: str | TrackConsensus = "tracks", workers: int | None = None,
                 scheduler: str | None = None, cache_dir=None, resume: bool = False, overwrite: bool = False,
-                progress=None, log=None, **options) -> MatchReport:
+                refine_poses: bool = False, progress=None, log=None, **options) -> MatchReport:
     """Match every pair of a posed collection on its epipolar segments; write a COLMAP database.
 
     Parameters
@@ -292,8 +300,16 @@ def match_model(model, image_dir, database, *, pairs=None, neighbors=None,
         Continue an existing database (skipping the pairs it holds; with the
         track consensus every pair's candidates are computed again, and the
         pairs already written are kept when unchanged), or replace it.
+    refine_poses : bool, optional
+        Refine the poses from the collection's own matches first (rounds of
+        matching with this call's settings, triangulation and bundle adjustment
+        of the poses, intrinsics fixed: :mod:`~episeg_cv.colmap.adjust`), then
+        match with the refined poses. For poses that are off by more than a
+        pixel's worth (odometry, GPS/IMU); ``MatchReport.poses`` holds the
+        refined views, for :func:`~episeg_cv.colmap.triangulate`. Default False.
     progress : callable, optional
-        Called as ``progress(stage, done, total)`` after each image
+        Called as ``progress(stage, done, total)`` after each round of ``refine_poses``
+        (``stage="poses"``), each image
         (``stage="features"``), each pair matched (``"pairs"``) and, with the
         track consensus, each pair written (``"write"``).
     log : callable, optional
@@ -313,6 +329,8 @@ def match_model(model, image_dir, database, *, pairs=None, neighbors=None,
         The Dask scheduler cannot be reached.
     """
     require_pycolmap()  # fail before any work when it is missing
+    if not isinstance(refine_poses, bool):
+        raise TypeError(f"refine_poses must be True or False, got {refine_poses!r}")
     warn = log or (lambda msg: print(msg, file=sys.stderr))
     if search is None and "tol" not in options:
         options = {**options, "tol": COLLECTION_TOL}
@@ -356,16 +374,29 @@ def match_model(model, image_dir, database, *, pairs=None, neighbors=None,
     if cache.exists() and not cache.is_dir():
         raise ValueError(f"feature cache {str(cache)!r} is a file, expected a folder")
     store = DatabaseFeatureStore(cache, image_dir, path) if from_database else FeatureStore(cache, image_dir, features)
+    adjustment = None
+    if refine_poses:
+        def run_round(round_views, round_db):
+            if from_database and not round_db.exists():  # a copy of COLMAP's features; each round replaces its matches
+                shutil.copyfile(path, round_db)
+            match_model(round_views, image_dir, round_db, pairs=[(views[i].name, views[j].name) for i, j in pair_list],
+                        features=SOURCE if from_database else features, depth_range="auto", search=search, rule=rule,
+                        verify="pairs" if consensus is None else consensus, workers=workers, scheduler=scheduler,
+                        cache_dir=cache, overwrite=True, log=lambda msg: None)
+
+        adjustment = adjust_poses(views, image_dir, run_round, warn=warn, progress=progress)
+        views = adjustment.views
     if rec is None or from_database:
         rec = reconstruction_from_views(views)
     report = MatchReport(path, len(views), len(pair_list), features=SOURCE if from_database else "extract",
                          verify={"mode": "pairs" if consensus is None else "tracks"},
-                         depth_ranges={v.name: v.depth_range for v in views})
+                         depth_ranges={v.name: v.depth_range for v in views}, poses=adjustment)
 
     tol = search.tol if search.auto is None else "auto" if search.auto == AutoTol() else repr(search.auto)
     settings = {"search": {"tol": tol, "constraint": search.constraint}, "rule": dataclasses.asdict(rule),
                 "features": store.describe(),
                 "verify": {"mode": "pairs"} if consensus is None else {"mode": "tracks", **dataclasses.asdict(consensus)},
+                "refine_poses": bool(refine_poses),
                 "depth_ranges": {v.name: [v.depth_range[0], str(v.depth_range[1])] for v in views}}
     run = _Run(path, rec, views, store, pair_list, settings, search, rule, consensus, resume, overwrite, report,
                progress or (lambda stage, done, total: None), warn, from_database)

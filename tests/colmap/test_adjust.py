@@ -1,0 +1,190 @@
+"""Poses that are off (:mod:`episeg_cv.colmap.adjust`): ``match_model(..., refine_poses=True)``."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+pycolmap = pytest.importorskip("pycolmap")
+
+from episeg_cv import colmap, scenes  # noqa: E402
+from episeg_cv.colmap import adjust  # noqa: E402
+from episeg_cv.colmap.views import View  # noqa: E402
+
+pycolmap.logging.minloglevel = 2
+
+K = np.array([[500.0, 0, 240], [0, 500, 180], [0, 0, 1]])
+
+
+@pytest.fixture(scope="module")
+def collection():
+    return scenes.make_collection(6, image_size=(480, 360))
+
+
+@pytest.fixture(scope="module")
+def folder(collection, tmp_path_factory):
+    return colmap.save_collection(collection, tmp_path_factory.mktemp("adjust"))
+
+
+def _rotation(axis, deg):
+    a = np.asarray(axis, float) / np.linalg.norm(axis)
+    S = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    th = np.radians(deg)
+    return np.eye(3) + np.sin(th) * S + (1 - np.cos(th)) * S @ S
+
+
+def _perturbed(views, deg, dist, seed=3):
+    """Each view turned by ``deg`` about a random axis and its centre moved by ``dist`` (world units)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for v in views:
+        R = _rotation(rng.normal(size=3), deg) @ v.R
+        u = rng.normal(size=3)
+        c = v.center + dist * u / np.linalg.norm(u)
+        out.append(dataclasses.replace(v, R=R, t=-R @ c))
+    return out
+
+
+def _relative_error_deg(views, truth):
+    """Largest error of the relative rotations over all pairs, degrees."""
+    worst = 0.0
+    for a in range(len(views)):
+        for b in range(a + 1, len(views)):
+            E = (views[b].R @ views[a].R.T) @ (truth[b].R @ truth[a].R.T).T
+            worst = max(worst, np.degrees(np.arccos(np.clip((np.trace(E) - 1) / 2, -1, 1))))
+    return worst
+
+
+# -- hand-computed ------------------------------------------------------------------------------------------
+def test_change_px_by_hand():
+    a = View("a.png", 1, 1, K, np.eye(3), [0, 0, 0], (480, 360))
+    turned = dataclasses.replace(a, R=_rotation([0, 1, 0], np.degrees(0.002)))   # 2 mrad: 1 px at f = 500
+    moved = dataclasses.replace(a, t=np.array([0.0, 0.02, 0.0]))                 # 2 cm at 10 m: 1 px
+    assert adjust.change_px(a, turned, depth=10.0) == pytest.approx(1.0, rel=1e-9)
+    assert adjust.change_px(a, moved, depth=10.0) == pytest.approx(1.0, rel=1e-9)
+    assert adjust.change_px(a, a, depth=10.0) == 0.0
+
+
+# -- property -----------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("seed", range(5))
+def test_align_undoes_any_similarity(seed):
+    rng = np.random.default_rng(seed)
+    given = [View(f"{k}.png", k + 1, 1, K, _rotation(rng.normal(size=3), rng.uniform(0, 30)), rng.normal(size=3),
+                  (480, 360)) for k in range(5)]
+    Rs, s, ts = _rotation(rng.normal(size=3), rng.uniform(0, 180)), rng.uniform(0.2, 5), rng.normal(size=3) * 10
+    # the same cameras in another frame: X_other = s Rs X + ts, so X_cam = R Rs^T (X_other - ts) / s
+    other = [dataclasses.replace(v, R=v.R @ Rs.T, t=v.t - v.R @ Rs.T @ ts / s) for v in given]
+    other = [dataclasses.replace(v, t=v.t * s) for v in other]  # metric camera frames scale with the world
+    back = adjust.align(given, other)
+    for g, b in zip(given, back):
+        np.testing.assert_allclose(b.R, g.R, atol=1e-9)
+        np.testing.assert_allclose(b.t, g.t, atol=1e-8)
+
+
+def test_align_of_cameras_at_one_centre_keeps_the_scale():
+    given = [View(f"{k}.png", k + 1, 1, K, _rotation([0, 1, 0], 20 * k), [0, 0, 0], (480, 360)) for k in range(3)]
+    turned = [dataclasses.replace(v, R=v.R @ _rotation([1, 0, 0], 5).T) for v in given]
+    for g, b in zip(given, adjust.align(given, turned)):
+        np.testing.assert_allclose(b.R, g.R, atol=1e-9)
+        np.testing.assert_allclose(b.t, g.t, atol=1e-12)
+
+
+def _true_inliers(db, views_true, tol=1.0):
+    """``(right, all)``: written inliers within ``tol`` px of their segment under the true poses, and all of them."""
+    from episeg_cv import filter_pairs
+
+    by_name = {v.name: v for v in views_true}
+    con = pycolmap.Database.open(str(db))
+    try:
+        kp = {im.name: np.asarray(con.read_keypoints(im.image_id))[:, :2] - 0.5 for im in con.read_all_images()}
+    finally:
+        con.close()
+    right = every = 0
+    for (a, b), (_, inl) in colmap.read_database_matches(db).items():
+        right += int(filter_pairs(inl.astype(np.intp), kp[a], kp[b], by_name[a].geometry_to(by_name[b]), tol=tol).sum())
+        every += len(inl)
+    return right, every
+
+
+# -- synthetic scene -----------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def true_views(folder):
+    return colmap.load_model(folder["model"])[0]
+
+
+def test_poses_off_by_half_a_degree_are_refined(folder, true_views, tmp_path):
+    noisy = _perturbed(true_views, 0.5, 0.02)
+    assert _relative_error_deg(noisy, true_views) > 0.4
+    stages = []
+    report = colmap.match_model(noisy, folder["images"], tmp_path / "r.db", refine_poses=True,
+                                progress=lambda stage, done, total: stages.append(stage))
+    p = report.poses
+    assert p.converged and 1 <= p.rounds <= adjust.MAX_ROUNDS and len(p.changes_px) == p.rounds
+    assert p.changes_px[-1] < adjust.MIN_CHANGE_PX < p.changes_px[0]
+    assert _relative_error_deg(p.views, true_views) < 0.05
+    assert [v.name for v in p.views] == [v.name for v in noisy]
+    assert [v.depth_range for v in p.views] == [v.depth_range for v in noisy]
+    assert stages.count("poses") == p.rounds
+    assert "poses refined in" in report.summary()
+    # the written two-view geometries are the refined poses'
+    db = pycolmap.Database.open(str(tmp_path / "r.db"))
+    try:
+        ids = {im.name: im.image_id for im in db.read_all_images()}
+        by_name = {v.name: v for v in p.views}
+        a, b = true_views[0].name, true_views[1].name
+        tvg = db.read_two_view_geometry(ids[a], ids[b])
+        np.testing.assert_allclose(tvg.cam2_from_cam1.rotation.matrix(), by_name[a].geometry_to(by_name[b]).R,
+                                   atol=1e-9)
+    finally:
+        db.close()
+    # far fewer wrong matches than matching with the poses as given, and no fewer right ones
+    plain = colmap.match_model(noisy, folder["images"], tmp_path / "p.db", cache_dir=tmp_path / "r.db.features")
+    assert plain.poses is None
+    right_r, all_r = _true_inliers(tmp_path / "r.db", true_views)
+    right_p, all_p = _true_inliers(tmp_path / "p.db", true_views)
+    assert right_r >= right_p and right_r / all_r > 0.98 and right_r / all_r > right_p / all_p + 0.05
+
+
+def test_exact_poses_stay_put(folder, true_views, tmp_path):
+    report = colmap.match_model(folder["model"], folder["images"], tmp_path / "e.db", refine_poses=True)
+    assert report.poses.converged and report.poses.rounds <= 2
+    f = true_views[0].K[0, 0]
+    assert np.radians(_relative_error_deg(report.poses.views, true_views)) * f < 0.5  # under half a pixel
+
+
+def test_no_convergence_keeps_the_given_poses(folder, true_views, tmp_path, monkeypatch):
+    monkeypatch.setattr(adjust, "MAX_ROUNDS", 1)
+    monkeypatch.setattr(adjust, "MIN_CHANGE_PX", 0.0)  # nothing converges
+    noisy = _perturbed(true_views, 0.5, 0.02)
+    warnings = []
+    report = colmap.match_model(noisy, folder["images"], tmp_path / "n.db", refine_poses=True, log=warnings.append)
+    p = report.poses
+    assert not p.converged and p.rounds == 1
+    assert all(np.array_equal(a.R, b.R) and np.array_equal(a.t, b.t) for a, b in zip(p.views, noisy))
+    assert any("did not converge" in w for w in warnings)
+    assert "poses kept as given" in report.summary()
+
+
+# -- bad input -----------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("bad", ["yes", 1, None])
+def test_refine_poses_must_be_a_bool(folder, tmp_path, bad):
+    with pytest.raises(TypeError, match="refine_poses"):
+        colmap.match_model(folder["model"], folder["images"], tmp_path / "b.db", refine_poses=bad)
+
+
+# -- the CLI -------------------------------------------------------------------------------------------------
+def test_cli_refine_poses_then_triangulate_with_them(folder, true_views, tmp_path):
+    import subprocess
+    import sys
+
+    noisy = tmp_path / "noisy.json"
+    colmap.save_poses(noisy, _perturbed(true_views, 0.5, 0.02))
+    r = subprocess.run([sys.executable, "-m", "episeg_cv.cli", "colmap", str(noisy), str(folder["images"]),
+                        "--database", str(tmp_path / "c.db"), "--refine-poses", "--triangulate", str(tmp_path / "tri")],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "poses refined in" in r.stdout and "triangulated model" in r.stdout
+    rec = pycolmap.Reconstruction(str(tmp_path / "tri"))
+    by_name = {im.name: im.cam_from_world().matrix() for im in rec.images.values()}
+    tri = [dataclasses.replace(v, R=by_name[v.name][:, :3], t=by_name[v.name][:, 3]) for v in true_views]
+    assert _relative_error_deg(tri, true_views) < 0.05  # the model holds the refined poses, not the noisy ones
