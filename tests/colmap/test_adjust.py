@@ -58,35 +58,41 @@ def _relative_error_deg(views, truth):
 # -- hand-computed ------------------------------------------------------------------------------------------
 def test_change_px_by_hand():
     a = View("a.png", 1, 1, K, np.eye(3), [0, 0, 0], (480, 360))
-    turned = dataclasses.replace(a, R=_rotation([0, 1, 0], np.degrees(0.002)))   # 2 mrad: 1 px at f = 500
-    moved = dataclasses.replace(a, t=np.array([0.0, 0.02, 0.0]))                 # 2 cm at 10 m: 1 px
-    assert adjust.change_px(a, turned, depth=10.0) == pytest.approx(1.0, rel=1e-9)
-    assert adjust.change_px(a, moved, depth=10.0) == pytest.approx(1.0, rel=1e-9)
-    assert adjust.change_px(a, a, depth=10.0) == 0.0
+    moved = dataclasses.replace(a, t=np.array([0.0, 0.02, 0.0]))  # 2 cm down: 1 px at 10 m, 2 px at 5 m
+    X = np.array([[0.0, 0.0, 10.0]] * 9 + [[0.0, 0.0, 5.0]])
+    assert adjust.change_px(a, moved, X[:9]) == pytest.approx(1.0, rel=1e-12)
+    # the 90th percentile of 9 moves of 1 px and one of 2 px
+    assert adjust.change_px(a, moved, X) == pytest.approx(np.percentile([1.0] * 9 + [2.0], 90), rel=1e-12)
+    assert adjust.change_px(a, moved, np.zeros((0, 3))) == 0.0
 
 
 # -- property -----------------------------------------------------------------------------------------------
+def _random_similarity(rng):
+    return rng.uniform(0.2, 5), _rotation(rng.normal(size=3), rng.uniform(0, 180)), rng.normal(size=3) * 10
+
+
 @pytest.mark.parametrize("seed", range(5))
-def test_align_undoes_any_similarity(seed):
+def test_similarity_recovers_any_similarity(seed):
     rng = np.random.default_rng(seed)
-    given = [View(f"{k}.png", k + 1, 1, K, _rotation(rng.normal(size=3), rng.uniform(0, 30)), rng.normal(size=3),
-                  (480, 360)) for k in range(5)]
-    Rs, s, ts = _rotation(rng.normal(size=3), rng.uniform(0, 180)), rng.uniform(0.2, 5), rng.normal(size=3) * 10
-    # the same cameras in another frame: X_other = s Rs X + ts, so X_cam = R Rs^T (X_other - ts) / s
-    other = [dataclasses.replace(v, R=v.R @ Rs.T, t=v.t - v.R @ Rs.T @ ts / s) for v in given]
-    other = [dataclasses.replace(v, t=v.t * s) for v in other]  # metric camera frames scale with the world
-    back = adjust.align(given, other)
-    for g, b in zip(given, back):
-        np.testing.assert_allclose(b.R, g.R, atol=1e-9)
-        np.testing.assert_allclose(b.t, g.t, atol=1e-8)
+    X = rng.normal(size=(20, 3))
+    s, R, t = _random_similarity(rng)
+    s2, R2, t2 = adjust.similarity(X, s * X @ R.T + t)
+    assert s2 == pytest.approx(s, rel=1e-12)
+    np.testing.assert_allclose(R2, R, atol=1e-12)
+    np.testing.assert_allclose(t2, t, atol=1e-10)
 
 
-def test_align_of_cameras_at_one_centre_keeps_the_scale():
-    given = [View(f"{k}.png", k + 1, 1, K, _rotation([0, 1, 0], 20 * k), [0, 0, 0], (480, 360)) for k in range(3)]
-    turned = [dataclasses.replace(v, R=v.R @ _rotation([1, 0, 0], 5).T) for v in given]
-    for g, b in zip(given, adjust.align(given, turned)):
-        np.testing.assert_allclose(b.R, g.R, atol=1e-9)
-        np.testing.assert_allclose(b.t, g.t, atol=1e-12)
+@pytest.mark.parametrize("seed", range(5))
+def test_in_frame_keeps_every_projection(seed):
+    rng = np.random.default_rng(seed)
+    views = [View(f"{k}.png", k + 1, 1, K, _rotation(rng.normal(size=3), rng.uniform(0, 30)), rng.normal(size=3),
+                  (480, 360)) for k in range(3)]
+    X = rng.normal(size=(10, 3)) + [0, 0, 8]
+    s, R, t = _random_similarity(rng)
+    moved = adjust.in_frame(views, s, R, t)
+    for v, m in zip(views, moved):  # the same image points, seen from the cameras moved with the world
+        np.testing.assert_allclose(adjust._project(m, s * X @ R.T + t), adjust._project(v, X), atol=1e-8)
+        assert adjust.change_px(v, v, X) == 0.0
 
 
 def _true_inliers(db, views_true, tol=1.0):
