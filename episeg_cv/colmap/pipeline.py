@@ -489,6 +489,10 @@ class _Run:
             band = collection_band(views, self.store, self.pair_list, self.search, self.rule, self.search.auto,
                                    imap=runner.imap_here, per_task=runner.spread)
             report.band = band.as_dict()
+            if not band.fallback and band.tol >= 2 * self.search.auto.tol_min and not self.settings["refine_poses"]:
+                self.warn(f"warning: the collection's band is {band.tol:.1f} px (sigma {band.sigma:.2f} px): the "
+                          "poses look off by more than their keypoints' noise, and a wide band lets wrong matches "
+                          "through; refine_poses=True (--refine-poses) corrects them first")
             self.search = self.search.replace(tol=band.tol)
             if self.consensus is not None and self.consensus.tau is None:
                 self.consensus = self.consensus.replace(tau=band.tau)

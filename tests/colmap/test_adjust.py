@@ -171,6 +171,17 @@ def test_no_convergence_keeps_the_given_poses(folder, true_views, tmp_path, monk
     assert "poses kept as given" in report.summary()
 
 
+def test_a_wide_band_suggests_refining_the_poses(folder, true_views, tmp_path):
+    notes = []
+    report = colmap.match_model(_perturbed(true_views, 0.5, 0.02), folder["images"], tmp_path / "w.db",
+                                log=notes.append)
+    assert report.band["tol"] >= 4.0 and any("refine_poses=True" in n for n in notes)
+    notes.clear()
+    report = colmap.match_model(folder["model"], folder["images"], tmp_path / "x.db", log=notes.append,
+                                cache_dir=tmp_path / "w.db.features")
+    assert report.band["tol"] < 4.0 and not any("refine_poses" in n for n in notes)
+
+
 # -- bad input -----------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("bad", ["yes", 1, None])
 def test_refine_poses_must_be_a_bool(folder, tmp_path, bad):
