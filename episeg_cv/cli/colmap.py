@@ -59,7 +59,8 @@ def add_parser(sub, parents) -> None:
                         "or 'ZMIN ZMAX' for every image, in the unit of the poses (default: auto)")
     p.add_argument("--tol", type=tol_arg, default=COLLECTION_TOL, metavar="PX|auto",
                    help="pixel tolerance of the constraint, or 'auto' (default): one band for the collection, from "
-                        "the confident matches of a few pairs around the given poses (which are not corrected; see --refine-poses)")
+                        "the confident matches of a few pairs around the given poses (which it does not correct: "
+                        "see --refine-poses)")
     p.add_argument("--ratio", type=ratio_arg, default=None,
                    help=f"ratio test of the guided matcher, with its mutual check (default: the matcher's, "
                         f"{AcceptRule().ratio})")

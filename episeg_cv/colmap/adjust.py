@@ -52,8 +52,8 @@ import numpy as np
 from .triangulation import triangulate
 from .views import View, require_pycolmap
 
-__all__ = ["PoseAdjustment", "adjust_poses", "similarity", "in_frame", "change_px", "MAX_ROUNDS", "MIN_CHANGE_PX", "MIN_POINTS",
-           "CHANGE_PERCENTILE"]
+__all__ = ["PoseAdjustment", "adjust_poses", "similarity", "in_frame", "change_px", "MAX_ROUNDS", "MIN_CHANGE_PX",
+           "MIN_POINTS", "CHANGE_PERCENTILE"]
 
 #: Most rounds of match, triangulate, adjust.
 MAX_ROUNDS = 8
@@ -61,6 +61,8 @@ MAX_ROUNDS = 8
 MIN_CHANGE_PX = 0.25
 #: 3D points a view must see for its pose to be adjusted.
 MIN_POINTS = 20
+#: The percentile of the moves of a view's points that :func:`change_px` reports (high, but robust to a few).
+CHANGE_PERCENTILE = 90.0
 
 
 @dataclass(frozen=True)
@@ -75,8 +77,8 @@ class PoseAdjustment:
     rounds : int
         Rounds run (the last one adjusted nothing when too few images saw enough points).
     changes_px : list of float
-        Per round that adjusted the poses, the largest effect of its pose change on any view's image points, pixels
-        (:func:`change_px`).
+        Per round that adjusted the poses, the largest effect of its pose change on any view's
+        image points, pixels (:func:`change_px`).
     points : list of int
         3D points triangulated per round.
     converged : bool
@@ -98,10 +100,6 @@ class PoseAdjustment:
         head = (f"poses refined in {self.rounds} round(s)" if self.converged else
                 f"poses kept as given: the refinement did not converge in {self.rounds} round(s)")
         return f"{head}; largest change per round: {steps} px"
-
-
-#: The share of a view's points whose move :func:`change_px` reports (a high percentile, robust to a few).
-CHANGE_PERCENTILE = 90.0
 
 
 def _project(view: View, X: np.ndarray) -> np.ndarray:
@@ -229,7 +227,7 @@ def adjust_poses(views: list, image_dir, run_round, max_rounds: int | None = Non
             run_round(current, database)
             rec = triangulate(database, current, image_dir, Path(tmp) / f"round{k}")
             points.append(int(rec.num_points3D()))
-            _, seen = _adjusted(rec, current)  # the points in the given frame, where the poses are
+            _, seen = _adjusted(rec, current)  # each view's points, triangulated with the current poses
             if len(seen) < 3:
                 if warn is not None:
                     warn(f"warning: pose refinement: only {len(seen)} image(s) see {MIN_POINTS} or more "
@@ -243,9 +241,8 @@ def adjust_poses(views: list, image_dir, run_round, max_rounds: int | None = Non
             ids = sorted(before)
             moved = in_frame(moved, *similarity(np.array([rec.points3D[i].xyz for i in ids]),
                                                 np.array([before[i] for i in ids])))
-            keep = [v.name in seen for v in current]
-            adjusted = [m if k else c for m, c, k in zip(moved, current, keep)]
-            changes.append(max(change_px(c, a, seen[c.name]) for c, a, k in zip(current, adjusted, keep) if k))
+            adjusted = [m if c.name in seen else c for m, c in zip(moved, current)]
+            changes.append(max(change_px(c, a, seen[c.name]) for c, a in zip(current, adjusted) if c.name in seen))
             current = adjusted
             converged = changes[-1] < min_change_px
             if progress is not None:
