@@ -13,8 +13,11 @@ camera-centre error of length ``d`` in a random direction, with
 (``R' = dR @ R``) and the centre moves in the world frame (``C' = C + d u``,
 ``t' = -R' C'``). Also here: the typical depth of a view of dinoSparseRing
 (distance from the camera centre to the centre of the object's bounding box)
-and of a rendered room (median finite rendered depth), and the relative
-rotation errors of a set of poses against the true ones.
+and of a rendered room (median finite rendered depth), the relative
+rotation errors of a set of poses against the true ones, and the similarity
+that best takes a model onto another one triangulated from the same matches
+(to judge a model up to its frame, which no method can recover from noisy
+poses).
 """
 
 from __future__ import annotations
@@ -115,6 +118,96 @@ def relative_rotation_errors(views, true_views) -> np.ndarray:
             ta, tb, ea, eb = T[i], T[j], by_name[T[i].name], by_name[T[j].name]
             errors.append(rotation_angle((tb.R @ ta.R.T).T @ (eb.R @ ea.R.T)))
     return np.degrees(np.array(errors, dtype=float))
+
+
+def umeyama(source, target) -> tuple:
+    """The similarity ``target ~ s Q source + c`` in least squares (Umeyama, 1991); points ``(N, 3)``, N >= 3.
+
+    Returns
+    -------
+    s : float
+    Q : (3, 3) float64
+    c : (3,) float64
+
+    >>> X = np.array([[0, 0, 0], [1, 0, 0], [0, 2, 0], [0, 0, 3.0]])
+    >>> Q0 = cv2.Rodrigues(np.array([0.0, 0.0, 0.5]))[0]
+    >>> s, Q, c = umeyama(X, 2 * X @ Q0.T + [1, 2, 3])
+    >>> round(s, 9), bool(np.allclose(Q, Q0)), np.round(c, 9).tolist()
+    (2.0, True, [1.0, 2.0, 3.0])
+    """
+    source, target = np.asarray(source, dtype=float), np.asarray(target, dtype=float)
+    if source.shape != target.shape or source.ndim != 2 or source.shape[1] != 3 or len(source) < 3:
+        raise ValueError(f"source and target must be two (N, 3) arrays, N >= 3; got {source.shape}, {target.shape}")
+    ms, mt = source.mean(axis=0), target.mean(axis=0)
+    A, B = source - ms, target - mt
+    u, sv, vt = np.linalg.svd(B.T @ A)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
+    Q = u @ D @ vt
+    s = float((sv * np.diag(D)).sum() / (A ** 2).sum())
+    return s, Q, mt - s * Q @ ms
+
+
+def trimmed_similarity(source, target, keep: float = 0.5, rounds: int = 5) -> tuple:
+    """:func:`umeyama` on the pairs it fits best (trimmed least squares): first on the share ``keep`` of the pairs
+    nearest to the medians of both sets, then ``rounds`` times on the share ``keep`` with the smallest residuals
+    of the previous fit. Wrong matches, triangulated far off and differently by two sets of poses, would
+    otherwise pull the similarity.
+
+    >>> rng = np.random.default_rng(0)
+    >>> X = rng.normal(size=(40, 3))
+    >>> Y = 2 * X + [1, 2, 3]
+    >>> Y[:12] += rng.normal(scale=50.0, size=(12, 3))  # 30 % wild pairs
+    >>> s, Q, c = trimmed_similarity(X, Y)
+    >>> round(s, 9), bool(np.allclose(Q, np.eye(3))), np.round(c, 9).tolist()
+    (2.0, True, [1.0, 2.0, 3.0])
+    """
+    source, target = np.asarray(source, dtype=float), np.asarray(target, dtype=float)
+    if not 0 < keep <= 1:
+        raise ValueError(f"keep must be in (0, 1], got {keep!r}")
+    n = max(3, int(np.ceil(keep * len(source))))
+    # start from the pairs nearest to the medians of both sets (a far-off point would ruin a first fit on all)
+    ranks = [np.argsort(np.argsort(np.linalg.norm(x - np.median(x, axis=0), axis=1), kind="stable"), kind="stable")
+             for x in (source, target)]
+    best = np.argsort(np.maximum(*ranks), kind="stable")[:n]
+    for _ in range(rounds):
+        s, Q, c = umeyama(source[best], target[best])
+        residual = np.linalg.norm(s * source @ Q.T + c - target, axis=1)
+        best = np.argsort(residual, kind="stable")[:n]
+    return umeyama(source[best], target[best])
+
+
+def tracks(rec) -> list:
+    """``[(xyz, [(image_id, point2D_idx), ...]), ...]``: the 3D points of a pycolmap Reconstruction and their tracks."""
+    return [(np.array(p.xyz, dtype=float), [(int(e.image_id), int(e.point2D_idx)) for e in p.track.elements])
+            for p in rec.points3D.values()]
+
+
+def corresponding_points(tracks_a, tracks_b) -> tuple:
+    """The points of two triangulations of one database that share an observation (a keypoint of an image).
+
+    ``tracks_a``, ``tracks_b``: as :func:`tracks` gives them. A point of ``a``
+    pairs with the point of ``b`` that holds most of its observations (the
+    first such on a tie); points of ``a`` with none in ``b`` are left out.
+
+    Returns
+    -------
+    A, B : (K, 3) float64
+        ``A[k]`` of ``a`` and ``B[k]`` of ``b`` hold the same keypoints.
+
+    >>> a = [(np.zeros(3), [(1, 5), (2, 7)]), (np.ones(3), [(1, 6), (3, 0)])]
+    >>> b = [(np.full(3, 9.0), [(2, 7), (3, 1)]), (np.full(3, 8.0), [(4, 4)])]
+    >>> A, B = corresponding_points(a, b)
+    >>> A.tolist(), B.tolist()
+    ([[0.0, 0.0, 0.0]], [[9.0, 9.0, 9.0]])
+    """
+    owner = {obs: k for k, (_, track) in enumerate(tracks_b) for obs in track}
+    A, B = [], []
+    for xyz, track in tracks_a:
+        hits = [owner[o] for o in track if o in owner]
+        if hits:
+            A.append(xyz)
+            B.append(tracks_b[max(dict.fromkeys(hits), key=hits.count)][0])
+    return np.array(A, dtype=float).reshape(-1, 3), np.array(B, dtype=float).reshape(-1, 3)
 
 
 def box_depths(views, box) -> np.ndarray:
