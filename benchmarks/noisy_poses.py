@@ -347,7 +347,8 @@ def markdown(res: dict) -> list:
             L.append("Per seed: rounds, the last round's largest effect of its pose change (px), 3D points per "
                      "round, whether it converged; the wall time of `match_model` with the default and with "
                      "`refine_poses=True`; the relative-rotation error over all pairs against the true poses "
-                     "(degrees, median / max) of the given and of the refined poses.\n")
+                     "(degrees, median / max) of the given and of the refined poses (`match_model` keeps the "
+                     "given poses when the refinement does not converge).\n")
             L.append("| noise (px) | seed | features | rounds | last change (px) | points per round | converged | "
                      "match_model s (default / refine) | rotation error given (°) | refined (°) |")
             L.append("|---:|---|---|---:|---:|---|---|---:|---:|---:|")
