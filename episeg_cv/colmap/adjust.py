@@ -96,7 +96,10 @@ class PoseAdjustment:
     seconds: float
 
     def summary(self) -> str:
-        steps = ", ".join(f"{c:.2f}" for c in self.changes_px) or "none"
+        if not self.changes_px:
+            return (f"poses kept as given: fewer than 3 images see {MIN_POINTS} or more of the "
+                    f"{self.points[-1]} triangulated points")
+        steps = ", ".join(f"{c:.2f}" for c in self.changes_px)
         head = (f"poses refined in {self.rounds} round(s)" if self.converged else
                 f"poses kept as given: the refinement did not converge in {self.rounds} round(s)")
         return f"{head}; largest change per round: {steps} px"

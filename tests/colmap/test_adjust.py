@@ -182,6 +182,18 @@ def test_a_wide_band_suggests_refining_the_poses(folder, true_views, tmp_path):
     assert report.band["tol"] < 4.0 and not any("refine_poses" in n for n in notes)
 
 
+def test_two_views_have_no_points_to_refine_with(tmp_path):
+    folder = colmap.save_collection(scenes.make_collection(2, image_size=(480, 360)), tmp_path / "two")
+    notes = []
+    report = colmap.match_model(folder["model"], folder["images"], tmp_path / "t.db", refine_poses=True,
+                                log=notes.append)
+    given = colmap.load_model(folder["model"])[0]
+    assert not report.poses.converged and report.poses.changes_px == [] and report.poses.points == [0]
+    assert all(np.array_equal(a.R, b.R) for a, b in zip(report.poses.views, given))
+    assert any("only 0 image(s)" in n for n in notes) and "poses kept as given: fewer than 3" in report.summary()
+    assert report.n_inliers > 0  # matched anyway, with the given poses
+
+
 # -- bad input -----------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("bad", ["yes", 1, None])
 def test_refine_poses_must_be_a_bool(folder, tmp_path, bad):
