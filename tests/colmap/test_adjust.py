@@ -2,6 +2,7 @@
 
 import dataclasses
 
+import cv2
 import numpy as np
 import pytest
 
@@ -27,10 +28,7 @@ def folder(collection, tmp_path_factory):
 
 
 def _rotation(axis, deg):
-    a = np.asarray(axis, float) / np.linalg.norm(axis)
-    S = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    th = np.radians(deg)
-    return np.eye(3) + np.sin(th) * S + (1 - np.cos(th)) * S @ S
+    return cv2.Rodrigues(np.radians(deg) * np.asarray(axis, float) / np.linalg.norm(axis))[0]
 
 
 def _perturbed(views, deg, dist, seed=3):
