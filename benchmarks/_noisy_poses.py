@@ -27,6 +27,8 @@ import dataclasses
 import cv2
 import numpy as np
 
+from episeg_cv.colmap.adjust import similarity
+
 
 def _unit(rng) -> np.ndarray:
     u = rng.normal(size=3)
@@ -120,35 +122,9 @@ def relative_rotation_errors(views, true_views) -> np.ndarray:
     return np.degrees(np.array(errors, dtype=float))
 
 
-def umeyama(source, target) -> tuple:
-    """The similarity ``target ~ s Q source + c`` in least squares (Umeyama, 1991); points ``(N, 3)``, N >= 3.
-
-    Returns
-    -------
-    s : float
-    Q : (3, 3) float64
-    c : (3,) float64
-
-    >>> X = np.array([[0, 0, 0], [1, 0, 0], [0, 2, 0], [0, 0, 3.0]])
-    >>> Q0 = cv2.Rodrigues(np.array([0.0, 0.0, 0.5]))[0]
-    >>> s, Q, c = umeyama(X, 2 * X @ Q0.T + [1, 2, 3])
-    >>> round(s, 9), bool(np.allclose(Q, Q0)), np.round(c, 9).tolist()
-    (2.0, True, [1.0, 2.0, 3.0])
-    """
-    source, target = np.asarray(source, dtype=float), np.asarray(target, dtype=float)
-    if source.shape != target.shape or source.ndim != 2 or source.shape[1] != 3 or len(source) < 3:
-        raise ValueError(f"source and target must be two (N, 3) arrays, N >= 3; got {source.shape}, {target.shape}")
-    ms, mt = source.mean(axis=0), target.mean(axis=0)
-    A, B = source - ms, target - mt
-    u, sv, vt = np.linalg.svd(B.T @ A)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
-    Q = u @ D @ vt
-    s = float((sv * np.diag(D)).sum() / (A ** 2).sum())
-    return s, Q, mt - s * Q @ ms
-
-
 def trimmed_similarity(source, target, keep: float = 0.5, rounds: int = 5) -> tuple:
-    """:func:`umeyama` on the pairs it fits best (trimmed least squares): first on the share ``keep`` of the pairs
+    """:func:`episeg_cv.colmap.adjust.similarity` on the pairs it fits best (trimmed least squares): first on
+    the share ``keep`` of the pairs
     nearest to the medians of both sets, then ``rounds`` times on the share ``keep`` with the smallest residuals
     of the previous fit. Wrong matches, triangulated far off and differently by two sets of poses, would
     otherwise pull the similarity.
@@ -170,10 +146,10 @@ def trimmed_similarity(source, target, keep: float = 0.5, rounds: int = 5) -> tu
              for x in (source, target)]
     best = np.argsort(np.maximum(*ranks), kind="stable")[:n]
     for _ in range(rounds):
-        s, Q, c = umeyama(source[best], target[best])
+        s, Q, c = similarity(source[best], target[best])
         residual = np.linalg.norm(s * source @ Q.T + c - target, axis=1)
         best = np.argsort(residual, kind="stable")[:n]
-    return umeyama(source[best], target[best])
+    return similarity(source[best], target[best])
 
 
 def tracks(rec) -> list:

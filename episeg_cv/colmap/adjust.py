@@ -136,6 +136,10 @@ def similarity(source: np.ndarray, target: np.ndarray) -> tuple[float, np.ndarra
     >>> round(s, 9), np.allclose(R, np.eye(3)), np.round(t, 9).tolist()
     (2.0, True, [1.0, 2.0, 3.0])
     """
+    source, target = np.asarray(source, dtype=np.float64), np.asarray(target, dtype=np.float64)
+    if source.shape != target.shape or source.ndim != 2 or source.shape[1] != 3 or len(source) < 3:
+        raise ValueError(f"source and target must be two (N, 3) arrays of the same N >= 3, got shapes "
+                         f"{source.shape} and {target.shape}")
     ms, mt = source.mean(axis=0), target.mean(axis=0)
     A, B = source - ms, target - mt
     U, d, Vt = np.linalg.svd(B.T @ A)

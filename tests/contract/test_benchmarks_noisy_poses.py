@@ -103,15 +103,15 @@ def test_a_model_moved_by_a_similarity_is_taken_back_through_its_shared_keypoint
     moved += [(np.full(3, 1e3), [(5, 0)]), (np.full(3, -1e3), [(1, 0), (2, 101), (1, 1)])]
     A, B = noise.corresponding_points(moved, true)
     assert len(A) == 51 and np.allclose(B[-1], X[1])  # the split track goes with the point holding two of its three
-    s, Q, c = noise.umeyama(A[:-1], B[:-1])
+    s, Q, c = noise.similarity(A[:-1], B[:-1])
     assert s == pytest.approx(s0) and np.allclose(Q, Q0) and np.allclose(c, c0)
     wild = A.copy()
     wild[:15] += rng.normal(scale=20.0, size=(15, 3))  # 29 % of the pairs far off (wrong matches)
-    assert not np.allclose(noise.umeyama(wild, B)[1], Q0, atol=1e-3)
+    assert not np.allclose(noise.similarity(wild, B)[1], Q0, atol=1e-3)
     s, Q, c = noise.trimmed_similarity(wild, B)
     assert s == pytest.approx(s0) and np.allclose(Q, Q0) and np.allclose(c, c0)
     with pytest.raises(ValueError, match="source and target"):
-        noise.umeyama(A[:2], B[:2])
+        noise.similarity(A[:2], B[:2])
 
 
 def test_the_goals_come_from_the_rows(bench):
@@ -138,5 +138,5 @@ def test_the_goals_come_from_the_rows(bench):
     assert G[(e2e, "true")] == ({"a": [1]}, [1], None)  # 0.894 < 0.9 - 0.005 with exact poses
     assert G[(same_refined, "true")] == ({"a": [0, 1]}, [0, 1], 1)
     true_line = bench.summary(res)[0]
-    assert "default up to **0 px** on COLMAP's features and at no level (not even with exact poses) end to end; " \
-           "with `refine_poses=True` up to **1 px** and up to **1 px**" in true_line
+    assert "the defaults: **0 px** on COLMAP's features, none (not even exact poses) end to end; " \
+           "`refine_poses=True`: **1 px** and **1 px**" in true_line
