@@ -396,7 +396,7 @@ def match_model(model, image_dir, database, *, pairs=None, neighbors=None,
     settings = {"search": {"tol": tol, "constraint": search.constraint}, "rule": dataclasses.asdict(rule),
                 "features": store.describe(),
                 "verify": {"mode": "pairs"} if consensus is None else {"mode": "tracks", **dataclasses.asdict(consensus)},
-                "refine_poses": bool(refine_poses),
+                **({"refine_poses": True} if refine_poses else {}),  # absent otherwise: earlier databases resume
                 "depth_ranges": {v.name: [v.depth_range[0], str(v.depth_range[1])] for v in views}}
     run = _Run(path, rec, views, store, pair_list, settings, search, rule, consensus, resume, overwrite, report,
                progress or (lambda stage, done, total: None), warn, from_database)
@@ -489,7 +489,7 @@ class _Run:
             band = collection_band(views, self.store, self.pair_list, self.search, self.rule, self.search.auto,
                                    imap=runner.imap_here, per_task=runner.spread)
             report.band = band.as_dict()
-            if not band.fallback and band.tol >= 2 * self.search.auto.tol_min and not self.settings["refine_poses"]:
+            if not band.fallback and band.tol >= 2 * self.search.auto.tol_min and "refine_poses" not in self.settings:
                 self.warn(f"warning: the collection's band is {band.tol:.1f} px (sigma {band.sigma:.2f} px): the "
                           "poses look off by more than their keypoints' noise, and a wide band lets wrong matches "
                           "through; refine_poses=True (--refine-poses) corrects them first")

@@ -215,3 +215,12 @@ def test_cli_refine_poses_then_triangulate_with_them(folder, true_views, tmp_pat
     by_name = {im.name: im.cam_from_world().matrix() for im in rec.images.values()}
     tri = [dataclasses.replace(v, R=by_name[v.name][:, :3], t=by_name[v.name][:, 3]) for v in true_views]
     assert _relative_error_deg(tri, true_views) < 0.05  # the model holds the refined poses, not the noisy ones
+
+
+def test_resume_needs_the_same_refine_poses(folder, tmp_path):
+    db = tmp_path / "r.db"
+    colmap.match_model(folder["model"], folder["images"], db, refine_poses=True)
+    with pytest.raises(ValueError, match="refine_poses"):
+        colmap.match_model(folder["model"], folder["images"], db, resume=True)
+    again = colmap.match_model(folder["model"], folder["images"], db, resume=True, refine_poses=True)
+    assert again.poses.converged and again.n_pairs_done + again.n_skipped == again.n_pairs
