@@ -28,6 +28,7 @@ import cv2
 import numpy as np
 
 from episeg_cv.colmap.adjust import similarity
+from episeg_cv.refinement import rotation_angle_deg
 
 
 def _unit(rng) -> np.ndarray:
@@ -61,7 +62,7 @@ def perturb_views(views, pixels: float, depths, seed) -> list:
     >>> from episeg_cv.colmap import View
     >>> v = View("a.png", 1, 1, np.diag([500.0, 500.0, 1.0]), np.eye(3), np.zeros(3), (640, 480))
     >>> w = perturb_views([v], 2.0, [5.0], seed=0)[0]
-    >>> round(rotation_angle(w.R @ v.R.T) * 500, 6)  # f * theta, px
+    >>> round(float(np.radians(rotation_angle_deg(w.R @ v.R.T))) * 500, 6)  # f * theta, px
     2.0
     >>> round(float(np.linalg.norm(w.center - v.center)) * 500 / 5.0, 6)  # f * d / z, px
     2.0
@@ -80,17 +81,6 @@ def perturb_views(views, pixels: float, depths, seed) -> list:
         c = v.center + _unit(rng) * (pixels * z / f)
         out.append(dataclasses.replace(v, R=R, t=-R @ c))
     return out
-
-
-def rotation_angle(R) -> float:
-    """Angle of a rotation matrix, radians, in ``[0, pi]``.
-
-    >>> round(rotation_angle(cv2.Rodrigues(np.array([0.0, 0.3, 0.0]))[0]), 12)
-    0.3
-    """
-    R = np.asarray(R, dtype=float)
-    sine = np.linalg.norm([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / 2.0
-    return float(np.arctan2(sine, (np.trace(R) - 1.0) / 2.0))  # exact near 0, unlike arccos
 
 
 def relative_rotation_errors(views, true_views) -> np.ndarray:
@@ -118,8 +108,8 @@ def relative_rotation_errors(views, true_views) -> np.ndarray:
     for i in range(len(T)):
         for j in range(i + 1, len(T)):
             ta, tb, ea, eb = T[i], T[j], by_name[T[i].name], by_name[T[j].name]
-            errors.append(rotation_angle((tb.R @ ta.R.T).T @ (eb.R @ ea.R.T)))
-    return np.degrees(np.array(errors, dtype=float))
+            errors.append(rotation_angle_deg((tb.R @ ta.R.T).T @ (eb.R @ ea.R.T)))
+    return np.array(errors, dtype=float)
 
 
 def trimmed_similarity(source, target, keep: float = 0.5, rounds: int = 5) -> tuple:

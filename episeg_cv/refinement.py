@@ -109,8 +109,16 @@ def _left_jacobian(w: np.ndarray) -> np.ndarray:
 
 
 def rotation_angle_deg(R: np.ndarray) -> float:
-    """The angle of a rotation matrix, degrees."""
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
+    """The angle of a rotation matrix, degrees, in ``[0, 180]``; exact near 0, where ``arccos`` of the trace
+    loses half the digits.
+
+    >>> import cv2
+    >>> round(rotation_angle_deg(cv2.Rodrigues(np.array([0.0, 1e-6, 0.0]))[0]) / float(np.degrees(1e-6)), 9)
+    1.0
+    """
+    R = np.asarray(R, dtype=np.float64)
+    sine = np.linalg.norm([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / 2.0
+    return float(np.degrees(np.arctan2(sine, (np.trace(R) - 1.0) / 2.0)))
 
 
 def _tangent_basis(u: np.ndarray) -> np.ndarray:

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from episeg_cv.colmap import View
+from episeg_cv.refinement import rotation_angle_deg
 
 BENCH = Path(__file__).resolve().parents[2] / "benchmarks"
 pytestmark = pytest.mark.skipif(not (BENCH / "noisy_poses.py").exists(),
@@ -58,7 +59,7 @@ def test_the_errors_have_the_requested_pixel_effect_on_every_lens(noise, pixels)
     noisy = noise.perturb_views(views, pixels, depths, seed=[3, 1])
     for v, w, z in zip(views, noisy, depths):
         f = v.K[0, 0]
-        assert f * noise.rotation_angle(w.R @ v.R.T) == pytest.approx(pixels, rel=1e-9)
+        assert f * np.radians(rotation_angle_deg(w.R @ v.R.T)) == pytest.approx(pixels, rel=1e-9)
         assert f * np.linalg.norm(w.center - v.center) / z == pytest.approx(pixels, rel=1e-9)
         # a point on the optical axis at depth z moves by f tan(theta) (the rotation) plus at most the centre's p
         X = v.R.T @ (np.array([0, 0, z]) - v.t)
