@@ -23,6 +23,8 @@ Conventions
   centre of the top-left pixel is ``(0.5, 0.5)``. Everything else in
   episeg_cv has it at ``(0, 0)``; a poses JSON's ``K`` uses episeg_cv's
   (OpenCV's) convention.
+- Images are read in their stored pixel grid, as COLMAP reads them: the
+  EXIF orientation tag is ignored (:mod:`.images`).
 - Distortion: keypoints are mapped to the pinhole image with COLMAP's own
   camera model before the constraint (:meth:`View.undistort`).
 

@@ -128,6 +128,7 @@ import numpy as np
 
 from .. import threads
 from . import _completion_kernel as _kernel
+from .images import read_grey
 from .views import PINHOLE_MODELS
 
 __all__ = ["complete_groups", "photo_consistency", "pinhole_image", "pinhole_images", "NORM_CODES", "MIN_NCC",
@@ -386,7 +387,7 @@ def pinhole_images(views, image_dir):
     def images(k):
         if k not in cache:
             path = Path(image_dir) / views[k].name
-            image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+            image = read_grey(path)
             if image is None:
                 raise ValueError(f"image {views[k].name!r} cannot be read: {path}")
             cache[k] = pinhole_image(views[k], image.astype(np.float32))

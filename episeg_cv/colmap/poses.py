@@ -10,6 +10,7 @@ import numpy as np
 
 from .._validation import as_camera_matrix, as_image_size, short_repr
 from ..io.paths import read_json
+from .images import image_size
 from .views import View, is_bounded
 
 __all__ = ["load_poses", "save_poses", "camera_of", "load_par", "is_par_file"]
@@ -96,15 +97,6 @@ def is_par_file(path) -> bool:
     return Path(path).name.endswith("_par.txt")
 
 
-def _image_size(path: Path):
-    import cv2
-
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        return None
-    return int(image.shape[1]), int(image.shape[0])
-
-
 def load_par(path, image_dir) -> list[View]:
     """Read a Middlebury multi-view camera file (``*_par.txt``, Seitz et al., CVPR 2006).
 
@@ -115,7 +107,8 @@ def load_par(path, image_dir) -> list[View]:
     The projection matrix is ``K [R | t]``, world-to-camera (``X_cam = R X + t``),
     with the image origin at the top-left. ``K`` is taken as given, in episeg_cv's
     (OpenCV's) pixel convention. The files carry no image size: it is read from
-    each image in ``image_dir``. Rotations with rounding errors are repaired (see
+    the header of each image in ``image_dir``, in its stored grid (:mod:`.images`:
+    the EXIF orientation is ignored, as COLMAP does). Rotations with rounding errors are repaired (see
     :func:`~episeg_cv._validation.as_rotation`). Image ids are 1, 2, ... in file
     order; images with the same ``K`` and size share a camera.
 
@@ -156,7 +149,7 @@ def load_par(path, image_dir) -> list[View]:
         if name in names:
             raise ValueError(f"{where}: image listed twice")
         names.add(name)
-        size = _image_size(image_dir / name)
+        size = image_size(image_dir / name)
         if size is None:
             raise ValueError(f"{where}: image {str(image_dir / name)!r} is missing or cannot be read")
         K = values[:9].reshape(3, 3)

@@ -12,11 +12,11 @@ import threading
 import zipfile
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from ..features import PRESETS, FeatureConfig, detect_features
 from ..io.paths import input_file, output_folder
+from .images import read_grey
 from .views import View
 
 _log = logging.getLogger("episeg_cv")
@@ -24,7 +24,7 @@ _log = logging.getLogger("episeg_cv")
 __all__ = ["FeatureStore", "FEATURES_VERSION"]
 
 #: Bumped whenever the features change for the same settings (stale cache files are recomputed).
-FEATURES_VERSION = 4
+FEATURES_VERSION = 5  # 5: images read in their stored grid, EXIF orientation ignored (:mod:`.images`)
 
 
 class FeatureStore:
@@ -123,7 +123,7 @@ class FeatureStore:
 
     def _detect(self, view: View) -> tuple[np.ndarray, np.ndarray]:
         image_path = self.image_dir / view.name
-        image = cv2.imread(str(image_path), cv2.IMREAD_GRAYSCALE)
+        image = read_grey(image_path)
         if image is None:
             raise ValueError(f"image {view.name!r} cannot be read (not an image OpenCV can decode): {image_path}")
         if (image.shape[1], image.shape[0]) != tuple(view.image_size):
