@@ -374,38 +374,39 @@ def match_model(model, image_dir, database, *, pairs=None, neighbors=None,
     if cache.exists() and not cache.is_dir():
         raise ValueError(f"feature cache {str(cache)!r} is a file, expected a folder")
     store = DatabaseFeatureStore(cache, image_dir, path) if from_database else FeatureStore(cache, image_dir, features)
-    adjustment = None
-    if refine_poses:
-        def run_round(round_views, round_db):
-            if from_database and not round_db.exists():  # a copy of COLMAP's features; each round replaces its matches
-                shutil.copyfile(path, round_db)
-            match_model(round_views, image_dir, round_db, pairs=[(views[i].name, views[j].name) for i, j in pair_list],
-                        features=SOURCE if from_database else features, depth_range="auto", search=search, rule=rule,
-                        verify="pairs" if consensus is None else consensus, workers=workers, scheduler=scheduler,
-                        cache_dir=cache, overwrite=True, log=lambda msg: None)
-
-        adjustment = adjust_poses(views, image_dir, run_round, warn=warn, progress=progress)
-        views = adjustment.views
-    if rec is None or from_database:
-        rec = reconstruction_from_views(views)
-    report = MatchReport(path, len(views), len(pair_list), features=SOURCE if from_database else "extract",
-                         verify={"mode": "pairs" if consensus is None else "tracks"},
-                         depth_ranges={v.name: v.depth_range for v in views}, poses=adjustment)
-
-    tol = search.tol if search.auto is None else "auto" if search.auto == AutoTol() else repr(search.auto)
-    settings = {"search": {"tol": tol, "constraint": search.constraint}, "rule": dataclasses.asdict(rule),
-                "features": store.describe(),
-                "verify": {"mode": "pairs"} if consensus is None else {"mode": "tracks", **dataclasses.asdict(consensus)},
-                **({"refine_poses": True} if refine_poses else {}),  # absent otherwise: earlier databases resume
-                "depth_ranges": {v.name: [v.depth_range[0], str(v.depth_range[1])] for v in views}}
-    run = _Run(path, rec, views, store, pair_list, settings, search, rule, consensus, resume, overwrite, report,
-               progress or (lambda stage, done, total: None), warn, from_database)
     # BLAS on one thread: the per-pair products are small, and idle BLAS threads spinning on a busy
     # machine made matching 3-5x slower (dinoSparseRing: 20 -> 95-108 pairs/s with one thread)
     with terminate_as_interrupt(), threadpool_limits(1, user_api="blas"):
         runner = Runner(workers, scheduler)
-        report.runner = runner.describe
         try:
+            adjustment = None
+            if refine_poses:
+                def run_round(round_views, round_db):  # on this run's Dask cluster, if any: a local one starts once
+                    if from_database and not round_db.exists():  # a copy of COLMAP's features; rounds replace matches
+                        shutil.copyfile(path, round_db)
+                    match_model(round_views, image_dir, round_db,
+                                pairs=[(views[i].name, views[j].name) for i, j in pair_list],
+                                features=SOURCE if from_database else features, depth_range="auto", search=search,
+                                rule=rule, verify="pairs" if consensus is None else consensus, workers=workers,
+                                scheduler=runner.address, cache_dir=cache, overwrite=True, log=lambda msg: None)
+
+                adjustment = adjust_poses(views, image_dir, run_round, warn=warn, progress=progress)
+                views = adjustment.views
+            if rec is None or from_database:
+                rec = reconstruction_from_views(views)
+            report = MatchReport(path, len(views), len(pair_list), features=SOURCE if from_database else "extract",
+                                 verify={"mode": "pairs" if consensus is None else "tracks"},
+                                 depth_ranges={v.name: v.depth_range for v in views}, poses=adjustment)
+            tol = search.tol if search.auto is None else "auto" if search.auto == AutoTol() else repr(search.auto)
+            settings = {"search": {"tol": tol, "constraint": search.constraint}, "rule": dataclasses.asdict(rule),
+                        "features": store.describe(),
+                        "verify": {"mode": "pairs"} if consensus is None else {"mode": "tracks",
+                                                                               **dataclasses.asdict(consensus)},
+                        **({"refine_poses": True} if refine_poses else {}),  # absent otherwise: old databases resume
+                        "depth_ranges": {v.name: [v.depth_range[0], str(v.depth_range[1])] for v in views}}
+            run = _Run(path, rec, views, store, pair_list, settings, search, rule, consensus, resume, overwrite,
+                       report, progress or (lambda stage, done, total: None), warn, from_database)
+            report.runner = runner.describe
             with runner.limits():
                 run(runner)
         finally:

@@ -187,6 +187,8 @@ class Runner:
 
     def __init__(self, workers: int | None = None, scheduler: str | None = None):
         self._pool = self._client = self._cluster = None
+        #: The Dask scheduler's address (a local cluster's too), for other runs on the same workers; None without Dask.
+        self.address = None
         self.cores = available_cores() if workers is None else int(workers)
         self._tornado_level = None
         if scheduler is not None:
@@ -212,14 +214,20 @@ class Runner:
                                                              silence_logs=logging.ERROR)
                 self._client = distributed.Client(self._cluster)
                 self._client.register_plugin(WarmWorker(os.getpid()))  # with the watchdog
+                self.address = self._cluster.scheduler_address
                 self.describe = f"a local Dask cluster of {n} workers"
             else:
                 try:
                     self._client = distributed.Client(scheduler, timeout=f"{CONNECT_TIMEOUT}s")
                 except (OSError, TimeoutError) as e:
                     raise ConnectionError(f"cannot reach the Dask scheduler at {scheduler!r}: {e}") from e
-                self._client.register_plugin(WarmWorker(None))
+                # kept when there: a local cluster's (with its watchdog) that serves refine_poses' rounds (a
+                # lambda travels by value: the scheduler's machine need not have episeg_cv)
+                name = WarmWorker.name
+                if not self._client.run_on_scheduler(lambda dask_scheduler: name in dask_scheduler.worker_plugins):
+                    self._client.register_plugin(WarmWorker(None))
                 self.describe = f"the Dask cluster at {scheduler}"
+                self.address = scheduler
             # An interrupt inside one of Dask's blocking calls makes its cancel callback fail on the event
             # loop (distributed's sync: "cannot access free variable 'future'"), which tornado logs with a
             # traceback. The interrupt itself is reported, so that log is noise while Dask runs (until close).

@@ -169,6 +169,32 @@ def test_no_convergence_keeps_the_given_poses(folder, true_views, tmp_path, monk
     assert "poses kept as given" in report.summary()
 
 
+def test_rounds_share_the_run_s_dask_cluster(folder, true_views, tmp_path, monkeypatch):
+    """A local cluster starts once for all rounds and the final matching (each start cost 1.3-1.9 s here),
+    and the rounds give the poses that threads give."""
+    pytest.importorskip("distributed")
+    import distributed
+
+    started = []
+    real = distributed.LocalCluster
+
+    def counted(*args, **kwargs):
+        started.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(distributed, "LocalCluster", counted)
+    noisy = _perturbed(true_views, 0.5, 0.02)
+    dask = colmap.match_model(noisy, folder["images"], tmp_path / "d.db", refine_poses=True, scheduler="local:1",
+                              workers=1)
+    threads = colmap.match_model(noisy, folder["images"], tmp_path / "t.db", refine_poses=True,
+                                 cache_dir=tmp_path / "d.db.features")
+    assert len(started) == 1 and dask.poses.rounds >= 2 and "Dask" in dask.runner
+    assert dask.poses.rounds == threads.poses.rounds and dask.poses.converged
+    for a, b in zip(dask.poses.views, threads.poses.views):
+        np.testing.assert_allclose(a.R, b.R, atol=1e-9)
+        np.testing.assert_allclose(a.t, b.t, atol=1e-9)
+
+
 def test_a_wide_band_suggests_refining_the_poses(folder, true_views, tmp_path):
     notes = []
     report = colmap.match_model(_perturbed(true_views, 0.5, 0.02), folder["images"], tmp_path / "w.db",
