@@ -36,7 +36,7 @@ from ..matching.config import AcceptRule, AutoTol, SearchConfig, resolve
 from .adjust import PoseAdjustment, adjust_poses
 from .band import collection_band, sample_pairs
 from . import completion
-from .consensus import TrackConsensus, verify_and_complete, verify_tracks
+from .consensus import TrackConsensus, suspect_views, verify_and_complete, verify_tracks
 from .database import (check_database_path, check_resumable, create_database, database_lock, pair_unchanged,
                        write_pair, write_pairs)
 from .dbfeatures import SOURCE, DatabaseFeatureStore, check_feature_database, database_views, prepare_feature_database
@@ -101,7 +101,9 @@ class MatchReport:
         or ``"database"`` (COLMAP's, read from the database).
     verify : dict
         ``{"mode": "tracks" | "pairs", ...}``; for the consensus, the counts of
-        :func:`~episeg_cv.colmap.verify_tracks` (``edges``, ``kept``, ``groups``, ...).
+        :func:`~episeg_cv.colmap.verify_tracks` (``edges``, ``kept``, ``groups``, ...) and
+        ``suspect_views``: ``{name: share of its candidates kept}`` of the images whose poses look
+        off (:func:`~episeg_cv.colmap.consensus.suspect_views`; a warning names them).
     depth_ranges : dict
         ``{name: (zmin, zmax)}`` used for each image.
     band : dict
@@ -152,6 +154,9 @@ class MatchReport:
         if v.get("mode") == "tracks" and "edges" in v:
             lines.append(f"track consensus: {v['kept']} of {v['edges']} candidate matches kept, {v['groups']} "
                          f"tracks, {self.seconds_verify:.1f} s")
+            if v.get("suspect_views"):
+                lines.append("images whose poses look off (few candidates confirmed): "
+                             + ", ".join(sorted(v["suspect_views"])))
         if self.poses is not None:
             lines.append(self.poses.summary())
         bounded = sum(is_bounded(z) for z in self.depth_ranges.values())
@@ -536,6 +541,15 @@ class _Run:
                 added = [None] * len(keep)
             report.seconds_verify = time.perf_counter() - t1
             report.verify.update(stats)
+            suspects = suspect_views(len(views), candidates, keep)
+            report.verify["suspect_views"] = {views[k].name: share for k, share, _ in suspects}
+            if suspects:
+                median = suspects[0][2]
+                named = ", ".join(f"{views[k].name!r} ({100 * share:.0f} %)" for k, share, _ in suspects[:5])
+                self.warn(f"warning: the tracks confirm few of the candidate matches of {len(suspects)} image(s): "
+                          f"{named}{', ...' if len(suspects) > 5 else ''}, against {100 * median:.0f} % for the "
+                          f"median image; their poses look off by more than the band ({self.search.tol:.1f} px), "
+                          "and their matches are left out: check them")
             db = pycolmap.Database.open(str(self.path))
             try:
                 block = []

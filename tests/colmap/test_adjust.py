@@ -206,6 +206,30 @@ def test_a_wide_band_suggests_refining_the_poses(folder, true_views, tmp_path):
     assert report.band["tol"] < 4.0 and not any("refine_poses" in n for n in notes)
 
 
+def test_a_view_whose_pose_is_off_is_named(folder, true_views, tmp_path):
+    """Synthetic scene: one view turned by 16 px (the others exact) loses its matches to the tracks; the
+    report and a warning name it. With exact poses nothing is named."""
+    notes = []
+    exact = colmap.match_model(folder["model"], folder["images"], tmp_path / "e.db", log=notes.append)
+    assert exact.verify["suspect_views"] == {} and not any("look off" in n for n in notes)
+    f, k = true_views[0].K[0, 0], 2
+    turned = list(true_views)
+    v = turned[k]
+    R = _rotation([0.3, 1.0, 0.2], np.degrees(16 / f)) @ v.R
+    turned[k] = dataclasses.replace(v, R=R, t=R @ (v.R.T @ v.t))  # the same centre
+    notes = []
+    report = colmap.match_model(turned, folder["images"], tmp_path / "t.db", log=notes.append,
+                                cache_dir=tmp_path / "e.db.features")
+    assert list(report.verify["suspect_views"]) == [v.name]
+    assert report.verify["suspect_views"][v.name] < 0.1
+    warning = [n for n in notes if "look off" in n]
+    assert len(warning) == 1 and repr(v.name) in warning[0]
+    assert f"images whose poses look off (few candidates confirmed): {v.name}" in report.summary()
+    # the pair rule alone has no tracks to judge with
+    assert "suspect_views" not in colmap.match_model(turned, folder["images"], tmp_path / "p.db", verify="pairs",
+                                                      cache_dir=tmp_path / "e.db.features").verify
+
+
 def test_two_views_have_no_points_to_refine_with(tmp_path):
     folder = colmap.save_collection(scenes.make_collection(2, image_size=(480, 360)), tmp_path / "two")
     notes = []

@@ -9,7 +9,7 @@ from hypothesis import given, settings, strategies as st
 
 from episeg_cv import scenes
 from episeg_cv.colmap import TrackConsensus, View, verify_tracks
-from episeg_cv.colmap.consensus import projection_matrices
+from episeg_cv.colmap.consensus import MIN_VIEW_CANDIDATES, SUSPECT_FRACTION, projection_matrices, suspect_views
 
 K = np.array([[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]])
 SIZE = (640, 480)
@@ -597,3 +597,37 @@ def test_ratio_order_is_a_stable_sort():
         rng.shuffle(x)
         np.testing.assert_array_equal(kernel._by_ratio(x), np.argsort(x, kind="stable"))
     assert kernel._by_ratio(np.zeros(0)).shape == (0,)
+
+
+# -- views whose pose looks off (suspect_views) -----------------------------------------------------------------
+def _counts(kept_per_pair, n=100):
+    """Candidates of a triangle of pairs (0, 1), (1, 2), (0, 2), ``n`` each, the first ``kept`` of each kept."""
+    pairs = [(0, 1), (1, 2), (0, 2)]
+    cands = [(i, j, np.zeros((n, 2), np.intp), np.zeros(n)) for i, j in pairs]
+    return cands, [np.arange(n) < k for k in kept_per_pair]
+
+
+def test_suspect_views_by_hand():
+    # shares: view 0 (80 + 80) / 200 = 0.8, view 1 (80 + 10) / 200 = 0.45, view 2 (10 + 80) / 200 = 0.45
+    assert suspect_views(3, *_counts([80, 10, 80])) == []
+    # view 2 keeps (2 + 2) / 200 = 0.02 against a median of 0.41: below a quarter of it
+    assert suspect_views(3, *_counts([80, 2, 2])) == [(2, 0.02, pytest.approx(0.41))]
+    # just above the threshold is not named; views with too few candidates are not judged
+    share = SUSPECT_FRACTION * 0.45 + 0.01
+    assert suspect_views(3, *_counts([80, round(200 * share / 2), round(200 * share / 2)])) == []
+    assert suspect_views(3, *_counts([0, 0, 0], n=MIN_VIEW_CANDIDATES // 2 - 1)) == []
+    assert suspect_views(0, [], []) == []
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(3, 8), st.floats(0.5, 1.0), st.integers(0, 2**31 - 1))
+def test_a_uniform_collection_names_no_view(n_views, share, seed):
+    """Property: when every pair keeps about the same share of its candidates, no view is named."""
+    rng = np.random.default_rng(seed)
+    cands, keep = [], []
+    for i in range(n_views):
+        for j in range(i + 1, n_views):
+            n = int(rng.integers(50, 200))  # (binomial noise: at least 7 sigma from the threshold)
+            cands.append((i, j, np.zeros((n, 2), np.intp), np.zeros(n)))
+            keep.append(rng.random(n) < share)
+    assert suspect_views(n_views, cands, keep) == []
