@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from distributed.diagnostics.plugin import WorkerPlugin
 
-from .runner import single_thread, undo_malloc_trim, warm_up, watch_parent
+from .worker import single_thread, undo_malloc_trim, warm_up, watch_parent
 
 __all__ = ["WarmWorker"]
 
@@ -12,9 +12,9 @@ __all__ = ["WarmWorker"]
 class WarmWorker(WorkerPlugin):
     """Dask worker plugin: prepare a worker once, when it starts.
 
-    glibc's own large-allocation thresholds back (:func:`.runner.undo_malloc_trim`), one thread for
+    glibc's own large-allocation thresholds back (:func:`.worker.undo_malloc_trim`), one thread for
     OpenCV and BLAS, the compiled matching kernels loaded
-    (:func:`.runner.warm_up`), and, with ``driver_pid``, a watchdog that ends
+    (:func:`.worker.warm_up`), and, with ``driver_pid``, a watchdog that ends
     the worker when that process is gone (for the workers of a local cluster,
     so that none outlives a killed run). ``driver_pid=None``: no watchdog (the
     workers of a cluster started with ``dask worker`` serve other clients too).

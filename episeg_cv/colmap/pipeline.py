@@ -41,9 +41,9 @@ from .database import (check_database_path, check_resumable, create_database, da
                        write_pair, write_pairs)
 from .dbfeatures import SOURCE, DatabaseFeatureStore, check_feature_database, database_views, prepare_feature_database
 from .job import PairJob, match_pairs
-from .model import auto_depth_ranges, load_model, reconstruction_from_views
+from .model import auto_depth_ranges, reconstruction_from_views
 from .pairs import exhaustive_pairs, index_pairs, neighbor_pairs, read_pairs
-from .poses import is_par_file, load_par, load_poses
+from .poses import load_views
 from .runner import Runner
 from .store import FeatureStore
 from .triangulation import check_triangulation_folder, triangulate
@@ -169,23 +169,6 @@ class MatchReport:
         return "\n".join(lines)
 
 
-def load_views(model, image_dir=None):
-    """``(views, reconstruction or None)`` from a model folder, a poses JSON, a Middlebury ``*_par.txt``
-    (its image sizes are read from ``image_dir``) or a list of View."""
-    if isinstance(model, (list, tuple)):
-        if not model or not all(isinstance(v, View) for v in model):
-            raise ValueError("model must be a non-empty list of View, a model folder or a poses JSON")
-        return list(model), None
-    path = Path(model)
-    if path.is_file() and is_par_file(path):
-        if image_dir is None:
-            raise ValueError(f"a Middlebury camera file ({path.name}) needs the image folder for the image sizes")
-        return load_par(path, image_dir), None
-    if path.is_file():
-        return load_poses(path), None
-    return load_model(path)
-
-
 def _resolve_pairs(views, pairs, neighbors, warn):
     names = [v.name for v in views]
     if pairs is not None and neighbors is not None:
@@ -233,7 +216,7 @@ def match_model(model, image_dir, database, *, pairs=None, neighbors=None,
     ----------
     model : str, Path or list of View
         A COLMAP sparse model folder (binary or text), a poses JSON
-        (:func:`load_poses`), a Middlebury multi-view ``*_par.txt``
+        (:func:`~episeg_cv.colmap.load_poses`), a Middlebury multi-view ``*_par.txt``
         (:func:`~episeg_cv.colmap.load_par`), or views.
     image_dir : str or Path
         Folder of the images, named as in the model.

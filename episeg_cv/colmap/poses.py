@@ -11,9 +11,10 @@ import numpy as np
 from .._validation import as_camera_matrix, as_image_size, short_repr
 from ..io.paths import read_json
 from .images import image_size
+from .model import load_model
 from .views import View, is_bounded
 
-__all__ = ["load_poses", "save_poses", "camera_of", "load_par", "is_par_file"]
+__all__ = ["load_poses", "save_poses", "camera_of", "load_par", "is_par_file", "load_views"]
 
 
 def camera_of(K, size, dist):
@@ -161,3 +162,20 @@ def load_par(path, image_dir) -> list[View]:
         except (TypeError, ValueError) as e:
             raise ValueError(f"{where}: {e}") from e
     return views
+
+
+def load_views(model, image_dir=None):
+    """``(views, reconstruction or None)`` from a model folder, a poses JSON, a Middlebury ``*_par.txt``
+    (its image sizes are read from ``image_dir``) or a list of View."""
+    if isinstance(model, (list, tuple)):
+        if not model or not all(isinstance(v, View) for v in model):
+            raise ValueError("model must be a non-empty list of View, a model folder or a poses JSON")
+        return list(model), None
+    path = Path(model)
+    if path.is_file() and is_par_file(path):
+        if image_dir is None:
+            raise ValueError(f"a Middlebury camera file ({path.name}) needs the image folder for the image sizes")
+        return load_par(path, image_dir), None
+    if path.is_file():
+        return load_poses(path), None
+    return load_model(path)

@@ -10,6 +10,7 @@ from ..interrupts import terminate_as_interrupt
 from .database import remove_stale_partials
 from .dbfeatures import reconstruction_from_database
 from .model import reconstruction_from_views
+from .poses import load_views
 from .views import require_pycolmap
 
 __all__ = ["triangulate", "check_triangulation_folder", "known_pose_reconstruction"]
@@ -59,8 +60,6 @@ def triangulate(database, model, image_dir, output_dir, options=None):
     -------
     pycolmap.Reconstruction
     """
-    from .pipeline import load_views
-
     pycolmap = require_pycolmap()
     out = check_triangulation_folder(output_dir, model, image_dir)
     remove_stale_partials(out)

@@ -9,7 +9,7 @@ import numba
 import pytest
 
 import episeg_cv
-from episeg_cv.colmap import runner as runner_module
+from episeg_cv.colmap import worker
 from episeg_cv.colmap.runner import (DASK_CHUNK_MAX, DASK_CHUNK_MIN, PROCESS_CHUNK, TASKS_PER_WORKER, THREAD_CHUNK,
                                      Runner, available_cores)
 
@@ -105,7 +105,7 @@ def test_dask_tasks_are_a_few_per_worker_within_bounds(n_items, workers, want):
 
 _FAULTS = """
 import resource, numpy as np
-from episeg_cv.colmap.runner import undo_malloc_trim
+from episeg_cv.colmap.worker import undo_malloc_trim
 changed = undo_malloc_trim()
 for _ in range(3):  # warm
     a = np.ones(1 << 20); del a
@@ -142,7 +142,7 @@ def test_worker_plugin_undoes_the_trim_setting(monkeypatch):
     monkeypatch.setattr(_dask, "warm_up", lambda: calls.append("kernels"))
     _dask.WarmWorker(None).setup()
     assert calls == ["malloc", "threads", "kernels"]
-    assert runner_module.MMAP_THRESHOLD < runner_module.TRIM_THRESHOLD
+    assert worker.MMAP_THRESHOLD < worker.TRIM_THRESHOLD
 
 
 def test_local_cluster_workers_run_without_the_statistical_profiler():
