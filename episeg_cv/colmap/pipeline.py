@@ -47,7 +47,7 @@ from .poses import load_views
 from .runner import Runner
 from .store import FeatureStore
 from .triangulation import check_triangulation_folder, triangulate
-from .views import View, is_bounded, require_pycolmap
+from .views import is_bounded, require_pycolmap
 
 __all__ = ["MatchReport", "match_model", "triangulate", "load_views", "check_triangulation_folder",
            "EXHAUSTIVE_WARN", "VERIFY", "COLLECTION_TOL"]
