@@ -824,6 +824,23 @@ def edit(name: str, fn):
     return step
 
 
+def phone_jpegs(orientation: int = 6):
+    """The collection's images as JPEGs tagged with an EXIF orientation (a phone's portrait pictures), and the
+    poses JSON renamed to them: COLMAP reads them in their stored grid, as their poses are."""
+    def step(d, fix):
+        from PIL import Image
+
+        for png in sorted((d / "images").glob("*.png")):
+            exif = Image.Exif()
+            exif[0x0112] = orientation
+            with Image.open(png) as im:
+                im.convert("L").save(png.with_suffix(".jpg"), quality=95, exif=exif.tobytes())
+            png.unlink()
+        poses = d / "poses.json"
+        poses.write_text(poses.read_text().replace(".png", ".jpg"))
+    return step
+
+
 def base_calib(fix) -> dict:
     return json.loads((fix / "pair" / "calib.json").read_text())
 
@@ -1799,6 +1816,10 @@ def g_colmap_model() -> list[Case]:
        err=("no registered images|no images",))
     mc("empty folder", "model folder holds nothing", S(cp("coll/images", "images"), mkdir("model")),
        err=("model", "no COLMAP model|images.bin"))
+    out.append(C("poses JSON over EXIF-tagged JPEGs", G, "issue: cv2.imread turns a tagged picture away from its pose "
+                 "(refused: 'image is 120x160, but its camera says 160x120')",
+                 ["colmap", "poses.json", "images", "--database", "db.db"], S(COLL, phone_jpegs()), expect="result",
+                 check=check_db("db.db", 4), mutable=DB_MUT))
     out.append(C("model folder missing", G, "no such folder", ["colmap", "nope", "images", "--database", "db.db"],
                  COLL, err=("nope", "does not exist|not found")))
     out.append(C("model is images.bin", G, "a model file instead of its folder",
