@@ -36,7 +36,7 @@ import numpy as np
 from ..interrupts import interrupts_deferred
 from .database import read_run_record, write_run_record
 from .store import FEATURES_VERSION, FeatureStore
-from .views import View, require_pycolmap
+from .views import View, poses_agree, require_pycolmap, rig_pose
 
 _log = logging.getLogger("episeg_cv")
 
@@ -248,7 +248,15 @@ def prepare_feature_database(path: Path, views, record: dict, resume: bool, over
 def reconstruction_from_database(path, views):
     """A pycolmap.Reconstruction of ``views`` (no points) with the database's cameras, rigs, frames and ids.
 
-    Each image must be alone in its frame (COLMAP's default for single cameras).
+    A frame of a multi-camera rig gets its ``rig_from_world`` from the view of its reference camera (or,
+    without it, from another of its views through that camera's ``sensor_from_rig``); every other view
+    of the frame must agree with it (:func:`~.model.rig_consistent` makes refined views so).
+
+    Raises
+    ------
+    ValueError
+        A view whose pose is not its rig's: ``sensor_from_rig`` composed with the frame's pose differs
+        from it by more than 1e-6 (rotation, radians; translation, relative to the camera's distance).
     """
     pycolmap = require_pycolmap()
     db = _open(path)
@@ -263,23 +271,30 @@ def reconstruction_from_database(path, views):
     chosen = [images[v.name] for v in views]
     for cid in sorted({im.camera_id for im in chosen}):
         rec.add_camera(cameras[cid])
-    frame_of = {}
+    members = {}  # frame id -> [(view, image)]
     for v, im in zip(views, chosen):
-        frame = frames.get(im.frame_id)
-        if frame is None or [d.id for d in frame.data_ids] != [im.image_id]:
-            raise ValueError(f"image {v.name!r} is not alone in its frame in database {str(path)!r}; "
-                             "multi-camera rigs are not supported with --features database")
-        frame_of[frame.frame_id] = (frame, v)
-    for rid in sorted({f.rig_id for f, _ in frame_of.values()}):
+        if im.frame_id not in frames:
+            raise ValueError(f"image {v.name!r} has no frame in database {str(path)!r}")
+        members.setdefault(im.frame_id, []).append((v, im))
+    for rid in sorted({frames[f].rig_id for f in members}):
         rec.add_rig(rigs[rid])
-    for fid, (frame, v) in sorted(frame_of.items()):
+    for fid, group in sorted(members.items()):
+        frame, rig = frames[fid], rigs[frames[fid].rig_id]
+        poses = [rig_pose(rig, cameras[im.camera_id].sensor_id, v.R, v.t) for v, im in group]
+        ref = next((k for k, (_, im) in enumerate(group) if rig.is_ref_sensor(cameras[im.camera_id].sensor_id)), 0)
+        R, t = poses[ref]
+        for (v, _), (Rk, tk) in zip(group, poses):
+            if not poses_agree(R, t, Rk, tk):
+                raise ValueError(f"the pose of image {v.name!r} is not its rig's in database {str(path)!r}: "
+                                 f"sensor_from_rig and the pose of {group[ref][0].name!r} put it elsewhere")
         f = pycolmap.Frame(frame_id=fid, rig_id=frame.rig_id)
         for d in frame.data_ids:
-            f.add_data_id(d)
-        f.rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(v.R), v.t)
+            if d.id in {im.image_id for _, im in group}:
+                f.add_data_id(d)
+        f.rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(R), t)
         rec.add_frame(f)
     for v, im in zip(views, chosen):
         rec.add_image(pycolmap.Image(name=v.name, camera_id=im.camera_id, image_id=im.image_id, frame_id=im.frame_id))
-    for fid in sorted(frame_of):
+    for fid in sorted(members):
         rec.register_frame(fid)
     return rec

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import re
 import struct
 from pathlib import Path
@@ -9,9 +10,9 @@ from pathlib import Path
 import numba as nb
 import numpy as np
 
-from .views import View, depth_range_from_depths, require_pycolmap
+from .views import View, camera_pose, depth_range_from_depths, require_pycolmap, rig_pose
 
-__all__ = ["load_model", "reconstruction_from_views", "auto_depth_ranges", "views_from_reconstruction",
+__all__ = ["load_model", "reconstruction_from_views", "auto_depth_ranges", "views_from_reconstruction", "rig_consistent",
            "check_binary_model"]
 
 
@@ -237,6 +238,32 @@ def reconstruction_from_views(views):
         rec.frame(v.image_id).rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(v.R), v.t)
         rec.register_frame(v.image_id)
     return rec
+
+
+def rig_consistent(views, rec) -> list[View]:
+    """``views`` with the poses that the multi-camera rigs of ``rec`` imply.
+
+    In each frame of a rig with more than one camera, the view of the reference camera sets the frame's
+    pose (``rig_from_world``), and every other view of the frame gets ``sensor_from_rig`` times it: the
+    rig's calibration holds. Views of one-camera rigs, and views not in ``rec``, are returned as given.
+    :func:`~episeg_cv.colmap.match_model` applies it to poses refined view by view (``refine_poses``).
+    """
+    by_name = {im.name: im for im in rec.images.values()}
+    frames = {}
+    for k, v in enumerate(views):
+        im = by_name.get(v.name)
+        if im is not None and rec.rig(rec.frame(im.frame_id).rig_id).num_sensors() > 1:
+            frames.setdefault(im.frame_id, []).append(k)
+    out = list(views)
+    for fid, ks in frames.items():
+        rig = rec.rig(rec.frame(fid).rig_id)
+        sensor = [rec.cameras[by_name[views[k].name].camera_id].sensor_id for k in ks]
+        ref = next((i for i, s in enumerate(sensor) if rig.is_ref_sensor(s)), 0)
+        R, t = rig_pose(rig, sensor[ref], views[ks[ref]].R, views[ks[ref]].t)
+        for k, s in zip(ks, sensor):
+            Rk, tk = camera_pose(rig, s, R, t)
+            out[k] = dataclasses.replace(views[k], R=Rk, t=tk)
+    return out
 
 
 def auto_depth_ranges(views, reconstruction, **kwargs) -> list[View]:

@@ -41,7 +41,7 @@ from .database import (check_database_path, check_resumable, create_database, da
                        write_pair, write_pairs)
 from .dbfeatures import SOURCE, DatabaseFeatureStore, check_feature_database, database_views, prepare_feature_database
 from .job import PairJob, match_pairs
-from .model import auto_depth_ranges, reconstruction_from_views
+from .model import auto_depth_ranges, reconstruction_from_views, rig_consistent
 from .pairs import exhaustive_pairs, index_pairs, neighbor_pairs, read_pairs
 from .poses import load_views
 from .runner import Runner
@@ -379,6 +379,8 @@ def match_model(model, image_dir, database, *, pairs=None, neighbors=None,
                                 scheduler=runner.address, cache_dir=cache, overwrite=True, log=lambda msg: None)
 
                 adjustment = adjust_poses(views, image_dir, run_round, warn=warn, progress=progress)
+                if rec is not None:  # refined view by view: a multi-camera rig's calibration holds again
+                    adjustment = dataclasses.replace(adjustment, views=rig_consistent(adjustment.views, rec))
                 views = adjustment.views
             if rec is None or from_database:
                 rec = reconstruction_from_views(views)

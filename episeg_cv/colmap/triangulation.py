@@ -9,7 +9,6 @@ from pathlib import Path
 from ..interrupts import terminate_as_interrupt
 from .database import remove_stale_partials
 from .dbfeatures import reconstruction_from_database
-from .model import reconstruction_from_views
 from .poses import load_views
 from .views import require_pycolmap
 
@@ -19,10 +18,10 @@ __all__ = ["triangulate", "check_triangulation_folder", "known_pose_reconstructi
 def known_pose_reconstruction(database, views, rec=None):
     """The reconstruction (no points) that ``pycolmap.triangulate_points`` needs for ``database``.
 
-    When the database's image and camera ids are the views' (a database written
-    by :func:`match_model` from extracted features), ``rec`` (the model's own)
-    or one built from the views; otherwise (COLMAP's features, ``features="database"``)
-    one with the database's cameras, rigs, frames and ids, found by image name.
+    ``rec`` (the model's own) when the database's image and camera ids are the views' (a database
+    written by :func:`match_model` from extracted features); otherwise (views given as a list, such
+    as refined poses, or COLMAP's features, ``features="database"``) one with the database's
+    cameras, rigs, frames and ids, found by image name, posed by the views.
     """
     pycolmap = require_pycolmap()
     db = pycolmap.Database.open(str(database))
@@ -33,8 +32,8 @@ def known_pose_reconstruction(database, views, rec=None):
     missing = [v.name for v in views if v.name not in ids]
     if missing:
         raise ValueError(f"image {missing[0]!r} of the model is not in database {str(database)!r}")
-    if all(ids[v.name] == (v.image_id, v.camera_id) for v in views):
-        return rec if rec is not None else reconstruction_from_views(views)
+    if rec is not None and all(ids[v.name] == (v.image_id, v.camera_id) for v in views):
+        return rec
     return reconstruction_from_database(database, views)
 
 

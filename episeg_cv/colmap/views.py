@@ -26,7 +26,8 @@ import numpy as np
 from .._validation import as_camera_matrix, as_depth_range, as_image_size, as_rotation, as_vector3
 from ..geometry import TwoViewGeometry
 
-__all__ = ["View", "PINHOLE_MODELS", "depth_range_from_depths", "is_bounded", "require_pycolmap"]
+__all__ = ["View", "PINHOLE_MODELS", "depth_range_from_depths", "is_bounded", "require_pycolmap", "rig_pose",
+           "camera_pose", "poses_agree"]
 
 #: COLMAP camera models without distortion: pinhole keypoints are the raw ones.
 PINHOLE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE")
@@ -195,3 +196,38 @@ def depth_range_from_depths(depths, percentiles=(2.0, 98.0), margin: float = 0.2
 def is_bounded(depth_range) -> bool:
     """Whether ``(zmin, zmax)`` says more than ``(0, inf)``."""
     return bool(depth_range[0] > 0 or np.isfinite(depth_range[1]))
+
+
+# -- multi-camera rigs (pycolmap.Rig: cam_from_world = sensor_from_rig * rig_from_world) --------------------------
+def _sensor_from_rig(rig, sensor_id):
+    S = np.asarray(rig.sensor_from_rig(sensor_id).matrix(), dtype=np.float64)
+    return S[:, :3], S[:, 3]
+
+
+def rig_pose(rig, sensor_id, R, t):
+    """``(R, t)`` of ``rig_from_world`` from the ``cam_from_world`` pose ``(R, t)`` of the camera ``sensor_id``
+    of ``rig`` (a ``pycolmap.Rig``): ``X_rig = Rs^T (X_cam - ts)``; the reference camera's pose is the rig's."""
+    if rig.is_ref_sensor(sensor_id):
+        return np.asarray(R, np.float64), np.asarray(t, np.float64)
+    Rs, ts = _sensor_from_rig(rig, sensor_id)
+    return Rs.T @ R, Rs.T @ (np.asarray(t, np.float64) - ts)
+
+
+def camera_pose(rig, sensor_id, R, t):
+    """The inverse of :func:`rig_pose`: ``cam_from_world`` of camera ``sensor_id`` from ``rig_from_world`` ``(R, t)``."""
+    if rig.is_ref_sensor(sensor_id):
+        return np.asarray(R, np.float64), np.asarray(t, np.float64)
+    Rs, ts = _sensor_from_rig(rig, sensor_id)
+    return Rs @ R, Rs @ t + ts
+
+
+def poses_agree(R1, t1, R2, t2, tol: float = 1e-6) -> bool:
+    """Whether two ``cam_from_world`` (or ``rig_from_world``) poses are the same to ``tol``: rotation entries,
+    and translations relative to ``max(1, |t1|)``.
+
+    >>> poses_agree(np.eye(3), np.zeros(3), np.eye(3), [0, 0, 1e-9]), poses_agree(np.eye(3), [0, 0, 1], np.eye(3), [0, 0, 2])
+    (True, False)
+    """
+    t1, t2 = np.asarray(t1, np.float64), np.asarray(t2, np.float64)
+    return bool(np.abs(np.asarray(R1) - np.asarray(R2)).max() <= tol
+                and np.abs(t1 - t2).max() <= tol * max(1.0, float(np.abs(t1).max())))
