@@ -250,7 +250,9 @@ def reconstruction_from_database(path, views):
 
     A frame of a multi-camera rig gets its ``rig_from_world`` from the view of its reference camera (or,
     without it, from another of its views through that camera's ``sensor_from_rig``); every other view
-    of the frame must agree with it (:func:`~.model.rig_consistent` makes refined views so).
+    of the frame must agree with it (:func:`~.model.rig_consistent` makes refined views so). A rig
+    whose ``sensor_from_rig`` the database does not hold (``colmap rig_configurator`` without poses)
+    takes it from the views of a frame that has the reference camera's image.
 
     Raises
     ------
@@ -277,6 +279,7 @@ def reconstruction_from_database(path, views):
             raise ValueError(f"image {v.name!r} has no frame in database {str(path)!r}")
         members.setdefault(im.frame_id, []).append((v, im))
     for rid in sorted({frames[f].rig_id for f in members}):
+        _calibrate(rigs[rid], [g for f, g in members.items() if frames[f].rig_id == rid], cameras, path)
         rec.add_rig(rigs[rid])
     for fid, group in sorted(members.items()):
         frame, rig = frames[fid], rigs[frames[fid].rig_id]
@@ -298,3 +301,22 @@ def reconstruction_from_database(path, views):
     for fid in sorted(members):
         rec.register_frame(fid)
     return rec
+
+
+def _calibrate(rig, groups, cameras, path) -> None:
+    """Set the ``sensor_from_rig`` that ``rig`` lacks from the views of a frame holding the reference camera's
+    image (``groups``: per frame ``[(view, image)]``)."""
+    pycolmap = require_pycolmap()
+    for sensor in rig.non_ref_sensors:
+        if rig.has_sensor_from_rig(sensor):
+            continue
+        for group in groups:
+            by_sensor = {cameras[im.camera_id].sensor_id: v for v, im in group}
+            if rig.ref_sensor_id in by_sensor and sensor in by_sensor:
+                ref, other = by_sensor[rig.ref_sensor_id], by_sensor[sensor]
+                R = other.R @ ref.R.T  # cam_from_world = sensor_from_rig * rig_from_world, the ref camera's the rig's
+                rig.set_sensor_from_rig(sensor, pycolmap.Rigid3d(pycolmap.Rotation3d(R), other.t - R @ ref.t))
+                break
+        else:
+            raise ValueError(f"a rig of database {str(path)!r} has no sensor_from_rig for camera {sensor.id}, and no "
+                             "frame holds both its image and the reference camera's to find it")

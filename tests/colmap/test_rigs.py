@@ -11,6 +11,7 @@ pycolmap = pytest.importorskip("pycolmap")
 
 from episeg_cv import colmap, scenes  # noqa: E402
 from episeg_cv.colmap.model import rig_consistent  # noqa: E402
+from episeg_cv.colmap.triangulation import known_pose_reconstruction  # noqa: E402
 from episeg_cv.colmap.views import camera_pose, poses_agree, rig_pose  # noqa: E402
 from episeg_cv.refinement import rotation_angle_deg  # noqa: E402
 from episeg_cv.scenes import make_room_scene, render  # noqa: E402
@@ -166,3 +167,38 @@ def test_views_that_break_their_rig_are_refused(rig, tmp_path):
     bad = [dataclasses.replace(v, t=v.t + [0.05, 0, 0]) if v.name == "cam1/frame2.png" else v for v in views]
     with pytest.raises(ValueError, match=r"cam1/frame2.png.*not its rig's"):
         colmap.triangulate(tmp_path / "db.db", bad, images, tmp_path / "tri")
+
+
+def test_colmap_features_of_a_rig_configured_database(rig, tmp_path):
+    """COLMAP's features with its rig configuration (``rig_configurator`` without poses: the database holds the
+    rig's cameras but no ``sensor_from_rig``): matched and triangulated with the rig, its calibration taken from
+    the model's poses (before this change such a database was refused; a first version of it crashed)."""
+    model, images = rig
+    db = tmp_path / "colmap.db"
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = "PINHOLE"
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.num_threads = 1
+    names = sorted(str(p.relative_to(images)) for p in images.rglob("*.png"))
+    pycolmap.extract_features(str(db), str(images), image_names=names, camera_mode=pycolmap.CameraMode.PER_FOLDER,
+                              reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
+    cfg = pycolmap.RigConfig()
+    cams = [pycolmap.RigConfigCamera(), pycolmap.RigConfigCamera()]
+    cams[0].ref_sensor, cams[0].image_prefix, cams[1].image_prefix = True, "cam0/", "cam1/"
+    cfg.cameras = cams
+    handle = pycolmap.Database.open(str(db))
+    try:
+        pycolmap.apply_rig_config([cfg], handle)
+        assert [r.num_sensors() for r in handle.read_all_rigs()] == [2]
+    finally:
+        handle.close()
+    colmap.match_model(model, images, db, features="database", log=lambda m: None)
+    rec = colmap.triangulate(db, model, images, tmp_path / "tri")
+    assert rec.num_rigs() == 1 and rec.num_points3D() > 100
+    # what it was triangulated from: the model's poses on the database's rig (COLMAP's adjustment then moves it)
+    start = known_pose_reconstruction(db, colmap.load_model(model)[0])
+    (rid,) = start.rigs
+    (sensor,) = start.rig(rid).non_ref_sensors
+    S = np.asarray(start.rig(rid).sensor_from_rig(sensor).matrix())
+    np.testing.assert_allclose(S[:, :3], TURN, atol=1e-9)
+    np.testing.assert_allclose(S[:, 3], BASE, atol=1e-9)
