@@ -258,7 +258,8 @@ def reconstruction_from_database(path, views):
     ------
     ValueError
         A view whose pose is not its rig's: ``sensor_from_rig`` composed with the frame's pose differs
-        from it by more than 1e-6 (rotation, radians; translation, relative to the camera's distance).
+        from it by more than 1e-6 (:func:`~.views.poses_agree`: rotation entries, translation relative
+        to ``max(1, |t|)``); a rig without ``sensor_from_rig`` and no frame to find it from.
     """
     pycolmap = require_pycolmap()
     db = _open(path)
