@@ -43,16 +43,6 @@ def _perturbed(views, deg, dist, seed=3):
     return out
 
 
-def _relative_error_deg(views, truth):
-    """Largest error of the relative rotations over all pairs, degrees."""
-    worst = 0.0
-    for a in range(len(views)):
-        for b in range(a + 1, len(views)):
-            E = (views[b].R @ views[a].R.T) @ (truth[b].R @ truth[a].R.T).T
-            worst = max(worst, np.degrees(np.arccos(np.clip((np.trace(E) - 1) / 2, -1, 1))))
-    return worst
-
-
 # -- hand-computed ------------------------------------------------------------------------------------------
 def test_change_px_by_hand():
     a = View("a.png", 1, 1, K, np.eye(3), [0, 0, 0], (480, 360))
@@ -93,39 +83,22 @@ def test_in_frame_keeps_every_projection(seed):
         assert adjust.change_px(v, v, X) == 0.0
 
 
-def _true_inliers(db, views_true, tol=1.0):
-    """``(right, all)``: written inliers within ``tol`` px of their segment under the true poses, and all of them."""
-    from episeg_cv import filter_pairs
-
-    by_name = {v.name: v for v in views_true}
-    con = pycolmap.Database.open(str(db))
-    try:
-        kp = {im.name: np.asarray(con.read_keypoints(im.image_id))[:, :2] - 0.5 for im in con.read_all_images()}
-    finally:
-        con.close()
-    right = every = 0
-    for (a, b), (_, inl) in colmap.read_database_matches(db).items():
-        right += int(filter_pairs(inl.astype(np.intp), kp[a], kp[b], by_name[a].geometry_to(by_name[b]), tol=tol).sum())
-        every += len(inl)
-    return right, every
-
-
 # -- synthetic scene -----------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def true_views(folder):
     return colmap.load_model(folder["model"])[0]
 
 
-def test_poses_off_by_half_a_degree_are_refined(folder, true_views, tmp_path):
+def test_poses_off_by_half_a_degree_are_refined(folder, true_views, tmp_path, relative_error_deg, true_inliers):
     noisy = _perturbed(true_views, 0.5, 0.02)
-    assert _relative_error_deg(noisy, true_views) > 0.4
+    assert relative_error_deg(noisy, true_views) > 0.4
     stages = []
     report = colmap.match_model(noisy, folder["images"], tmp_path / "r.db", refine_poses=True,
                                 progress=lambda stage, done, total: stages.append(stage))
     p = report.poses
     assert p.converged and 1 <= p.rounds <= adjust.MAX_ROUNDS and len(p.changes_px) == p.rounds
     assert p.changes_px[-1] < adjust.MIN_CHANGE_PX < p.changes_px[0]
-    assert _relative_error_deg(p.views, true_views) < 0.05
+    assert relative_error_deg(p.views, true_views) < 0.05
     assert [v.name for v in p.views] == [v.name for v in noisy]
     assert [v.depth_range for v in p.views] == [v.depth_range for v in noisy]
     assert stages.count("poses") == p.rounds
@@ -144,16 +117,16 @@ def test_poses_off_by_half_a_degree_are_refined(folder, true_views, tmp_path):
     # far fewer wrong matches than matching with the poses as given, and no fewer right ones
     plain = colmap.match_model(noisy, folder["images"], tmp_path / "p.db", cache_dir=tmp_path / "r.db.features")
     assert plain.poses is None
-    right_r, all_r = _true_inliers(tmp_path / "r.db", true_views)
-    right_p, all_p = _true_inliers(tmp_path / "p.db", true_views)
+    right_r, all_r = true_inliers(tmp_path / "r.db", true_views)
+    right_p, all_p = true_inliers(tmp_path / "p.db", true_views)
     assert right_r >= right_p and right_r / all_r > 0.98 and right_r / all_r > right_p / all_p + 0.05
 
 
-def test_exact_poses_stay_put(folder, true_views, tmp_path):
+def test_exact_poses_stay_put(folder, true_views, tmp_path, relative_error_deg):
     report = colmap.match_model(folder["model"], folder["images"], tmp_path / "e.db", refine_poses=True)
     assert report.poses.converged and report.poses.rounds <= 2
     f = true_views[0].K[0, 0]
-    assert np.radians(_relative_error_deg(report.poses.views, true_views)) * f < 0.5  # under half a pixel
+    assert np.radians(relative_error_deg(report.poses.views, true_views)) * f < 0.5  # under half a pixel
 
 
 def test_no_convergence_keeps_the_given_poses(folder, true_views, tmp_path, monkeypatch):
@@ -250,7 +223,7 @@ def test_refine_poses_must_be_a_bool(folder, tmp_path, bad):
 
 
 # -- the CLI -------------------------------------------------------------------------------------------------
-def test_cli_refine_poses_then_triangulate_with_them(folder, true_views, tmp_path):
+def test_cli_refine_poses_then_triangulate_with_them(folder, true_views, tmp_path, relative_error_deg):
     import subprocess
     import sys
 
@@ -264,7 +237,7 @@ def test_cli_refine_poses_then_triangulate_with_them(folder, true_views, tmp_pat
     rec = pycolmap.Reconstruction(str(tmp_path / "tri"))
     by_name = {im.name: im.cam_from_world().matrix() for im in rec.images.values()}
     tri = [dataclasses.replace(v, R=by_name[v.name][:, :3], t=by_name[v.name][:, 3]) for v in true_views]
-    assert _relative_error_deg(tri, true_views) < 0.05  # the model holds the refined poses, not the noisy ones
+    assert relative_error_deg(tri, true_views) < 0.05  # the model holds the refined poses, not the noisy ones
 
 
 def test_resume_needs_the_same_refine_poses(folder, tmp_path):
