@@ -3,8 +3,9 @@
 Components share no observation and no edge, so they are processed independently: one after the
 other (:func:`consensus`) or in blocks on threads (:func:`consensus_parallel`), with the same result.
 A component too big for one thread (false edges chain tracks into one: 82 % of the edges of the
-24-view room) runs its own rounds on every thread, in speculative batches applied in order as long as
-no round read what an earlier one took (:func:`_big_component`), again with the serial result.
+24-view room) runs its own rounds on every thread, in speculative batches of chains applied in order;
+a chain that read what an earlier one took runs again (:func:`_big_component`), again with the serial
+result.
 
 Every array is checked and laid out by :func:`.consensus.verify_tracks`; these
 functions trust them. Nodes are (image, keypoint) observations, ``0 .. n-1``;
@@ -92,12 +93,13 @@ def triangulate_point(P, node_image, node_xy, nodes, count, out):
 
 
 @nb.njit(cache=True, nogil=True)
-def _support(P, node_image, node_xy, X, a, b, adj_ptr, adj, eu, ev, alive, tau, stamp, mark, queue, best_err,
-             best_node, touched, out):
+def _support(P, node_image, node_xy, X, a, b, adj_ptr, adj, eu, ev, alive, taken, chain, tau, stamp, mark, queue,
+             best_err, best_node, touched, out):
     """The support of the point ``X`` grown from the observations ``a`` and ``b`` through the match graph:
     ``(count, score, visited)``; ``queue[:visited]`` are the alive observations it looked at.
 
-    Breadth first from ``a`` and ``b`` along the edges, through alive observations only, and only through
+    Breadth first from ``a`` and ``b`` along the edges, through alive observations only (``alive``, and not
+    ``chain`` in ``taken``: a thread's own overlay of the groups its chain took), and only through
     those that reproject within ``tau`` pixels of ``X`` in front of their camera: the support is connected
     by candidate matches. Per image only the closest counts; they are written to ``out``. ``score`` is
     MSAC's (Torr and Zisserman 2000): the sum over them of ``1 - (error / tau)^2``, so that of two points
@@ -128,7 +130,7 @@ def _support(P, node_image, node_xy, X, a, b, adj_ptr, adj, eu, ev, alive, tau, 
             best_node[k] = v
         for p in range(adj_ptr[v], adj_ptr[v + 1]):
             w = eu[adj[p]] + ev[adj[p]] - v
-            if mark[w] != stamp and alive[w]:
+            if mark[w] != stamp and alive[w] and taken[w] != chain:
                 mark[w] = stamp
                 queue[tail] = w
                 tail += 1
@@ -144,7 +146,8 @@ def _support(P, node_image, node_xy, X, a, b, adj_ptr, adj, eu, ev, alive, tau, 
 
 
 @nb.njit(cache=True, nogil=True)
-def _window(e0, adj_ptr, adj, eu, ev, rank, alive, dead, hops, limit, max_seeds, stamp, mark, queue, depth, seeds):
+def _window(e0, adj_ptr, adj, eu, ev, rank, alive, taken, chain, dead, hops, limit, max_seeds, stamp, mark, queue,
+            depth, seeds):
     """The seeds of a round: ``e0`` first, then the live edges of lowest ``rank`` (ratio, then input order)
     among the alive observations within ``hops`` edges of its ends (breadth first, at most ``limit``
     observations); at most ``max_seeds``, in ``seeds``. Returns their number and the number of
@@ -165,7 +168,7 @@ def _window(e0, adj_ptr, adj, eu, ev, rank, alive, dead, hops, limit, max_seeds,
             continue
         for p in range(adj_ptr[v], adj_ptr[v + 1]):
             w = eu[adj[p]] + ev[adj[p]] - v
-            if mark[w] != stamp and alive[w]:
+            if mark[w] != stamp and alive[w] and taken[w] != chain:
                 mark[w] = stamp
                 queue[tail] = w
                 depth[tail] = d + 1
@@ -352,10 +355,11 @@ def _note(reads, n, cap, queue, tail):
 
 @nb.njit(cache=True, nogil=True)
 def _round(e0, P, centers, node_image, node_xy, eu, ev, tau, cos_min_angle, max_seeds, neighbourhood, hops, adj_ptr,
-           adj, rank, alive, dead, bound, mark, stamp, best_err, best_node, touched, inl, best_inl, again, dirs, seeds,
-           queue, depth, X, pair, reads, cap):
-    """One round from the live edge ``e0`` (:func:`_components`) on the current graph: it reads ``alive`` and
-    ``dead`` and writes only ``bound``, ``mark`` and its own buffers.
+           adj, rank, alive, taken, chain, dead, bound, write_bound, mark, stamp, best_err, best_node, touched, inl,
+           best_inl, again, dirs, seeds, queue, depth, X, pair, reads, cap):
+    """One round from the live edge ``e0`` (:func:`_components`) on the current graph: it reads ``alive``,
+    ``taken`` and ``dead`` and writes only ``bound`` (if ``write_bound``), ``mark`` and its own buffers. An
+    observation is alive when ``alive`` says so and ``taken`` does not hold ``chain`` (-1: no overlay).
 
     Returns ``(count, views, n_seeds, n_reads, stamp)``: a group of ``count`` >= 2 observations,
     ``best_inl[:count]``, with ``views`` distinct views; or ``count = 0``, no seed found support, and
@@ -364,8 +368,8 @@ def _round(e0, P, centers, node_image, node_xy, eu, ev, tau, cos_min_angle, max_
     holds as long as none of them leaves the graph. ``stamp`` is the last mark used.
     """
     stamp += 1
-    n_seeds, tail = _window(e0, adj_ptr, adj, eu, ev, rank, alive, dead, hops, neighbourhood, max_seeds, stamp, mark,
-                            queue, depth, seeds)
+    n_seeds, tail = _window(e0, adj_ptr, adj, eu, ev, rank, alive, taken, chain, dead, hops, neighbourhood, max_seeds,
+                            stamp, mark, queue, depth, seeds)
     n_reads = _note(reads, 0, cap, queue, tail)
     best_count = 0
     best_score = 0.0
@@ -380,10 +384,11 @@ def _round(e0, P, centers, node_image, node_xy, eu, ev, tau, cos_min_angle, max_
             bound[k] = 0.0  # (the same two rays every round)
             continue
         stamp += 1
-        cnt, score, tail = _support(P, node_image, node_xy, X, eu[k], ev[k], adj_ptr, adj, eu, ev, alive, tau, stamp,
-                                    mark, queue, best_err, best_node, touched, inl)
+        cnt, score, tail = _support(P, node_image, node_xy, X, eu[k], ev[k], adj_ptr, adj, eu, ev, alive, taken, chain,
+                                    tau, stamp, mark, queue, best_err, best_node, touched, inl)
         n_reads = _note(reads, n_reads, cap, queue, tail)
-        bound[k] = score
+        if write_bound:
+            bound[k] = score
         if cnt >= 2 and score > best_score:
             best_count = cnt
             best_score = score
@@ -395,7 +400,7 @@ def _round(e0, P, centers, node_image, node_xy, eu, ev, tau, cos_min_angle, max_
     if triangulate_point(P, node_image, node_xy, best_inl, best_count, X):
         stamp += 1
         cnt, _, tail = _support(P, node_image, node_xy, X, eu[best_seed], ev[best_seed], adj_ptr, adj, eu, ev, alive,
-                                tau, stamp, mark, queue, best_err, best_node, touched, again)
+                                taken, chain, tau, stamp, mark, queue, best_err, best_node, touched, again)
         n_reads = _note(reads, n_reads, cap, queue, tail)
         if cnt >= 2:
             best_inl[:cnt] = again[:cnt]
@@ -455,6 +460,7 @@ def _components(c0, c1, skip, P, centers, node_image, node_xy, eu, ev, er, n_ima
     X = np.empty(3)
     pair = np.empty(2, np.int64)
     reads = np.empty(0, np.int64)
+    taken = np.zeros(node_image.shape[0], np.int64)  # (no overlay: chain -1 never matches)
     stamp = 0  # (mark is read only for the nodes of the component being processed)
     for c in range(c0, c1):
         if skip[c]:
@@ -472,8 +478,8 @@ def _components(c0, c1, skip, P, centers, node_image, node_xy, eu, ev, er, n_ima
                 break
             count, views, n_seeds, _, stamp = _round(
                 edge_order[first], P, centers, node_image, node_xy, eu, ev, tau, cos_min_angle, max_seeds,
-                neighbourhood, hops, adj_ptr, adj, rank, alive, dead, bound, mark, stamp, best_err, best_node,
-                touched, inl, best_inl, again, dirs, seeds, queue, depth, X, pair, reads, 0)
+                neighbourhood, hops, adj_ptr, adj, rank, alive, taken, -1, dead, bound, True, mark, stamp, best_err,
+                best_node, touched, inl, best_inl, again, dirs, seeds, queue, depth, X, pair, reads, 0)
             if count == 0:
                 for s in range(n_seeds):
                     dead[seeds[s]] = True
@@ -490,34 +496,42 @@ def _components(c0, c1, skip, P, centers, node_image, node_xy, eu, ev, er, n_ima
         comp_unsupported[c] = n_unsupported
 
 
-#: Observations a speculative round may record as read (:func:`_big_component`); a round that reads more runs
-#: only as the first of its batch (none did on the measured sets: a window holds at most ``neighbourhood``).
+#: Observations a speculative chain may record as read (:func:`_big_component`); a chain that reads more is
+#: run again in the apply phase (none did on the measured sets: a window holds at most ``neighbourhood``).
 READ_CAP = 8192
-#: Speculative rounds per slot and batch (:func:`_big_component`). On the 24-view room's big component
-#: (270k of 330k edges, 2 threads) 2, 3, 4, 8 and 16 took 152, 154, 136, 153 and 164 ms: larger batches
-#: waste more rounds after the first clash, smaller ones start more parallel loops.
-ROUNDS_PER_SLOT = 4
+#: Speculative chains per slot and batch (:func:`_big_component`). Since a clash costs only the chain that
+#: clashed (run again), larger batches waste little; on the 24-view room's big component (270k of 330k
+#: edges, 2 threads) 4, 8, 16 and 32 took the same time within this machine's noise (scratch sweep).
+ROUNDS_PER_SLOT = 16
 #: Most slots (buffers of a speculative round, one per thread; a node mark each) of :func:`_big_component`.
 MAX_SLOTS = 16
+#: Most groups of one speculative chain (:func:`_big_component`): on the 24-view room, 2905 of 14.7k rounds
+#: follow a round of the same edge (a neighbouring seed's group won and left the edge live); chains of 1,
+#: 2, 4 and 8 took the same time within noise, and a longer chain than this goes on in the apply phase.
+MAX_CHAIN = 4
 
 
 @nb.njit(cache=True, nogil=True, parallel=True)
-def _big_component(c, slots, rounds_per_slot, read_cap, P, centers, node_image, node_xy, eu, ev, er, n_images, tau,
-                   cos_min_angle, max_seeds, neighbourhood, hops, adj_ptr, adj, edge_order, comp_node, comp_edge, alive,
-                   dead, group, slot_views, comp_groups, comp_unsupported, bound, rank):
+def _big_component(c, slots, rounds_per_slot, read_cap, max_chain, P, centers, node_image, node_xy, eu, ev, er,
+                   n_images, tau, cos_min_angle, max_seeds, neighbourhood, hops, adj_ptr, adj, edge_order, comp_node,
+                   comp_edge, alive, dead, group, slot_views, comp_groups, comp_unsupported, bound, rank):
     """Component ``c``'s rounds on ``slots`` threads, with the result of :func:`_components` (deterministic
     reservations, Blelloch et al. 2012).
 
-    A batch takes the component's next ``slots * rounds_per_slot`` live edges, lowest ratio first, and runs
-    their rounds at once on the graph as it is (:func:`_round`: it reads the graph and records the
-    observations it found alive, at most ``read_cap``: a round that reads more runs only as the first of
-    its batch). Then, in ratio order, each round's result is applied if it is the one
-    the rounds before would have left: none of the observations it read was taken into a group (or was
-    the end of a seed set aside) by a round applied before it in this batch. The first round that fails
-    this ends the batch; the next batch starts from the lowest live edge. A round whose group leaves its
-    edge live is followed by that edge's rounds, run here one after the other until the edge is taken,
-    as the serial loop does. Rounds far apart in the graph, the usual case in a big component, do not
-    touch each other, so most batches are applied whole.
+    A batch takes the component's next ``slots * rounds_per_slot`` live edges, lowest ratio first. Each
+    thread runs their rounds on the graph as it is, and, for an edge that a round's group leaves live, the
+    edge's next rounds (at most ``max_chain`` in all), on the graph less the groups this chain took (a
+    thread's own overlay, ``taken``): what the serial loop would run next if nothing else changed. Each
+    chain records the observations it found alive (at most ``read_cap``). Then, in ratio order, a chain's
+    groups are applied if none of the observations it read was taken into a group (or was the end of a
+    seed set aside) by a chain applied before it in this batch; otherwise its edge's rounds run again
+    here, on the graph as it is now, as do the rounds of an edge a full chain leaves live. The result is
+    the serial loop's. Rounds far apart in the graph, the usual case in a big component, do not touch each
+    other, so nearly every chain is applied as it is.
+
+    ``bound`` (each seed's upper bound of score) is written only by rounds on the graph as it is at the
+    start of the batch or later: a chain's later rounds run on a graph that may never exist, where a score
+    could be lower than on the real one.
     """
     p_node = comp_node[c]
     n_nodes = comp_node[c + 1] - p_node
@@ -526,7 +540,9 @@ def _big_component(c, slots, rounds_per_slot, read_cap, P, centers, node_image, 
     batch = slots * rounds_per_slot
     n = node_image.shape[0]
     mark = np.zeros((slots, n), np.int64)
+    taken = np.zeros((slots, n), np.int64)
     stamps = np.zeros(slots, np.int64)
+    chains = np.zeros(slots, np.int64)
     best_err = np.full((slots, n_images), np.inf)
     best_node = np.full((slots, n_images), -1, np.int64)
     touched = np.empty((slots, n_images), np.int64)
@@ -538,11 +554,13 @@ def _big_component(c, slots, rounds_per_slot, read_cap, P, centers, node_image, 
     X = np.empty((slots, 3))
     pair = np.empty((slots, 2), np.int64)
     cand = np.empty(batch, np.int64)
-    counts = np.empty(batch, np.int64)
-    views = np.empty(batch, np.int64)
+    n_chain = np.empty(batch, np.int64)  # groups in the chain
+    set_aside = np.empty(batch, np.bool_)  # the chain ended in a round whose seeds found no support
     n_seeds = np.empty(batch, np.int64)
     n_reads = np.empty(batch, np.int64)
-    best_inl = np.empty((batch, n_images), np.int64)
+    counts = np.empty((batch, max_chain), np.int64)
+    views = np.empty((batch, max_chain), np.int64)
+    nodes = np.empty((batch, max_chain, n_images), np.int64)
     seeds = np.empty((batch, max_seeds), np.int64)
     reads = np.empty((batch, read_cap), np.int64)
     written = np.zeros(n, np.int64)  # the batch that took an observation (or set aside an edge at it)
@@ -551,43 +569,81 @@ def _big_component(c, slots, rounds_per_slot, read_cap, P, centers, node_image, 
     n_unsupported = 0
     bid = 0
     while True:
-        while first < q_edge and not _live(edge_order[first], eu, ev, alive, dead):
-            first += 1
-        if first == q_edge:
-            break
         nc = 0
-        q = first
-        while q < q_edge and nc < batch:
-            if _live(edge_order[q], eu, ev, alive, dead):
-                cand[nc] = edge_order[q]
+        while first < q_edge and nc < batch:  # (every edge before first is no longer live, and stays so)
+            if _live(edge_order[first], eu, ev, alive, dead):
+                cand[nc] = edge_order[first]
                 nc += 1
-            q += 1
+            first += 1
+        if nc == 0:
+            break
         for sl in prange(slots):
             for b in range(sl, nc, slots):
-                r = _round(cand[b], P, centers, node_image, node_xy, eu, ev, tau, cos_min_angle, max_seeds,
-                           neighbourhood, hops, adj_ptr, adj, rank, alive, dead, bound, mark[sl], stamps[sl],
-                           best_err[sl], best_node[sl], touched[sl], inl[sl], best_inl[b], again[sl], dirs[sl],
-                           seeds[b], queue[sl], depth[sl], X[sl], pair[sl], reads[b], read_cap)
-                counts[b] = r[0]
-                views[b] = r[1]
-                n_seeds[b] = r[2]
-                n_reads[b] = r[3]
-                stamps[sl] = r[4]
+                e0 = cand[b]
+                chains[sl] += 1
+                ch = chains[sl]
+                nr = 0
+                ng = 0
+                set_aside[b] = False
+                while True:
+                    count, n_view, n_seed, got, stamps[sl] = _round(
+                        e0, P, centers, node_image, node_xy, eu, ev, tau, cos_min_angle, max_seeds, neighbourhood,
+                        hops, adj_ptr, adj, rank, alive, taken[sl], ch, dead, bound, ng == 0, mark[sl], stamps[sl],
+                        best_err[sl], best_node[sl], touched[sl], inl[sl], nodes[b, ng], again[sl], dirs[sl],
+                        seeds[b], queue[sl], depth[sl], X[sl], pair[sl], reads[b, nr:], read_cap - nr)
+                    if got < 0 or nr == read_cap:
+                        nr = -1
+                        break
+                    nr += got
+                    if count == 0:
+                        set_aside[b] = True
+                        n_seeds[b] = n_seed
+                        break
+                    counts[b, ng] = count
+                    views[b, ng] = n_view
+                    for q2 in range(count):
+                        taken[sl, nodes[b, ng, q2]] = ch
+                    ng += 1
+                    if ng == max_chain or not _live(e0, eu, ev, alive, dead) or taken[sl, eu[e0]] == ch \
+                            or taken[sl, ev[e0]] == ch:
+                        break
+                n_chain[b] = ng
+                n_reads[b] = nr
         bid += 1
         for b in range(nc):
-            if b > 0:
-                if n_reads[b] < 0:
-                    break
-                clash = False
-                for r in range(n_reads[b]):
-                    if written[reads[b, r]] == bid:
-                        clash = True
-                        break
-                if clash:
-                    break
             e0 = cand[b]
-            count, n_seed, n_view = counts[b], n_seeds[b], views[b]
-            while True:
+            if not _live(e0, eu, ev, alive, dead):  # taken by a chain before it: the serial loop skips it
+                continue
+            clash = n_reads[b] < 0
+            for r in range(n_reads[b]):
+                if written[reads[b, r]] == bid:
+                    clash = True
+                    break
+            if not clash:
+                for g in range(n_chain[b]):
+                    slot = p_node + n_groups
+                    for q2 in range(counts[b, g]):
+                        v = nodes[b, g, q2]
+                        group[v] = slot
+                        alive[v] = False
+                        written[v] = bid
+                    slot_views[slot] = views[b, g]
+                    n_groups += 1
+                if set_aside[b]:
+                    for s in range(n_seeds[b]):
+                        k = seeds[b, s]
+                        dead[k] = True
+                        written[eu[k]] = bid
+                        written[ev[k]] = bid
+                    n_unsupported += n_seeds[b]
+            # a chain that clashed, or one cut short with e0 still live: e0's rounds on the graph as it is now
+            # (the chains after it in this batch are then checked against what these take too)
+            while _live(e0, eu, ev, alive, dead):
+                count, n_view, n_seed, _, stamps[0] = _round(
+                    e0, P, centers, node_image, node_xy, eu, ev, tau, cos_min_angle, max_seeds, neighbourhood, hops,
+                    adj_ptr, adj, rank, alive, taken[0], -1, dead, bound, True, mark[0], stamps[0], best_err[0],
+                    best_node[0], touched[0], inl[0], nodes[b, 0], again[0], dirs[0], seeds[b], queue[0], depth[0],
+                    X[0], pair[0], reads[b], 0)
                 if count == 0:
                     for s in range(n_seed):
                         k = seeds[b, s]
@@ -597,21 +653,13 @@ def _big_component(c, slots, rounds_per_slot, read_cap, P, centers, node_image, 
                     n_unsupported += n_seed
                 else:
                     slot = p_node + n_groups
-                    for q in range(count):
-                        v = best_inl[b, q]
+                    for q2 in range(count):
+                        v = nodes[b, 0, q2]
                         group[v] = slot
                         alive[v] = False
                         written[v] = bid
                     slot_views[slot] = n_view
                     n_groups += 1
-                if not _live(e0, eu, ev, alive, dead):
-                    break
-                # the group left e0 live: the next round is e0's again, on the graph as it is now (the rounds
-                # after it in this batch are then checked against what this one takes too)
-                count, n_view, n_seed, _, stamps[0] = _round(
-                    e0, P, centers, node_image, node_xy, eu, ev, tau, cos_min_angle, max_seeds, neighbourhood, hops,
-                    adj_ptr, adj, rank, alive, dead, bound, mark[0], stamps[0], best_err[0], best_node[0], touched[0],
-                    inl[0], best_inl[b], again[0], dirs[0], seeds[b], queue[0], depth[0], X[0], pair[0], reads[b], 0)
     comp_groups[c] = n_groups
     comp_unsupported[c] = n_unsupported
 
@@ -690,9 +738,9 @@ def consensus_parallel(P, centers, node_image, node_xy, eu, ev, er, n_images, ta
     sizes = np.diff(comp_edge)
     skip[:] = (slots > 1) & (sizes >= BIG_COMPONENT) & (sizes * threads > eu.shape[0])
     for c in np.flatnonzero(skip):
-        _big_component(c, slots, ROUNDS_PER_SLOT, READ_CAP, P, centers, node_image, node_xy, eu, ev, er, n_images, tau,
-                       cos_min_angle, max_seeds, neighbourhood, hops, adj_ptr, adj, edge_order, comp_node, comp_edge,
-                       alive, dead, group, slot_views, comp_groups, comp_unsupported, bound, rank)
+        _big_component(c, slots, ROUNDS_PER_SLOT, READ_CAP, MAX_CHAIN, P, centers, node_image, node_xy, eu, ev, er,
+                       n_images, tau, cos_min_angle, max_seeds, neighbourhood, hops, adj_ptr, adj, edge_order,
+                       comp_node, comp_edge, alive, dead, group, slot_views, comp_groups, comp_unsupported, bound, rank)
     left = np.concatenate(([0], np.cumsum(np.where(skip, 0, sizes))))  # edges of the other components, cumulated
     cuts = np.searchsorted(left, np.arange(blocks + 1) * left[-1] // blocks)  # blocks of about equal edges
     cuts[0], cuts[blocks] = 0, n_comp

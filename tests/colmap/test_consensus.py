@@ -549,17 +549,20 @@ def _chained_graph(wrong, seed=3):
 
 
 @pytest.mark.skipif(__import__("numba").config.NUMBA_NUM_THREADS < 2, reason="needs two numba threads")
-@pytest.mark.parametrize("wrong, big, read_cap, per_slot", [
-    (0.15, 4096, 8192, 4),  # the defaults: the chained component runs on both threads
-    (0.15, 1, 8192, 4),     # every component above its thread's share of the edges
-    (0.15, 1, 24, 4),       # room for few reads: most rounds run alone, first of their batch
-    (0.6, 1, 8192, 16),     # many false edges (seeds set aside too), big batches: many clashes
-    (0.3, 1, 8192, 1),      # batches of one round per slot
+@pytest.mark.parametrize("wrong, big, read_cap, per_slot, chain", [
+    (0.15, 4096, 8192, 16, 4),  # the defaults: the chained component runs on both threads
+    (0.15, 1, 8192, 4, 4),      # every component above its thread's share of the edges
+    (0.15, 1, 24, 4, 4),        # room for few reads: most chains run again in the apply phase
+    (0.6, 1, 8192, 64, 4),      # many false edges (seeds set aside too), big batches: many clashes
+    (0.3, 1, 8192, 1, 1),       # batches of one chain per slot, chains of one round: the rest runs in the apply phase
+    (0.3, 1, 8192, 8, 64),      # chains as long as an edge has rounds
 ])
-def test_big_components_in_speculative_batches_give_the_serial_result(monkeypatch, wrong, big, read_cap, per_slot):
-    """A big component's rounds run in speculative batches on every thread (``_big_component``: rounds applied
-    in ratio order as long as nothing a round read was taken by one applied before it): the groups, their views
-    and the counts must be those of the serial loop, whatever the batch, the room for reads and the graph."""
+def test_big_components_in_speculative_batches_give_the_serial_result(monkeypatch, wrong, big, read_cap, per_slot,
+                                                                       chain):
+    """A big component's rounds run in speculative batches of chains on every thread (``_big_component``: an
+    edge's rounds on the graph less what the chain took, applied in ratio order unless something a chain read
+    was taken by one applied before it, and then run again): the groups, their views and the counts must be
+    those of the serial loop, whatever the batch, the chain, the room for reads and the graph."""
     import numba
 
     from episeg_cv.colmap import _consensus_kernel as kernel
@@ -572,6 +575,7 @@ def test_big_components_in_speculative_batches_give_the_serial_result(monkeypatc
     monkeypatch.setattr(kernel, "BIG_COMPONENT", big)
     monkeypatch.setattr(kernel, "READ_CAP", read_cap)
     monkeypatch.setattr(kernel, "ROUNDS_PER_SLOT", per_slot)
+    monkeypatch.setattr(kernel, "MAX_CHAIN", chain)
     before = numba.get_num_threads()
     numba.set_num_threads(2)
     try:
