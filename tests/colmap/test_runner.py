@@ -92,6 +92,25 @@ def test_items_here_use_the_pool_of_threads_or_this_thread_and_never_a_cluster()
     assert list(fake.imap_here(lambda x: x * 2, range(3))) == [0, 2, 4]
 
 
+def test_items_here_run_on_the_driver_threads_beside_a_dask_cluster():
+    """With Dask, the band's sample pairs run on this process's cores (idle meanwhile), not on the cluster
+    and not on one thread."""
+    pytest.importorskip("distributed")
+    runner = Runner(2, "local:1")
+    try:
+        with runner.limits():
+            here = set(runner.imap_here(_seen, range(8)))
+        assert sorted(runner.imap(_square, range(5))) == [0, 1, 4, 9, 16]  # imap: still the cluster
+        assert runner._client.run(os.getpid) and os.getpid() not in runner._client.run(os.getpid).values()
+    finally:
+        runner.close()
+    assert {t for t, _ in here} <= {f"episeg-worker_{k}" for k in range(2)} and {n for _, n in here} == {1}
+
+
+def _square(x):
+    return x * x
+
+
 @pytest.mark.parametrize("n_items, workers, want", [
     (276, 2, 35), (276, 8, 9), (276, 16, DASK_CHUNK_MIN), (10, 2, DASK_CHUNK_MIN), (100000, 2, DASK_CHUNK_MAX), (0, 2, DASK_CHUNK_MIN),
 ])
