@@ -171,11 +171,17 @@ def spread_subset(points: np.ndarray, n_max: int, cells: int = 8) -> np.ndarray:
     lo, hi = points.min(axis=0), points.max(axis=0) + 1e-9
     c = np.minimum(np.floor((points - lo) / (hi - lo) * cells).astype(np.intp), cells - 1)
     key = c[:, 0] * cells + c[:, 1]
-    order = np.argsort(key, kind="stable")
+    # each point's rank within its cell, in index order (a stable counting sort by cell)
+    order = np.argsort(key.astype(np.uint16), kind="stable")  # (16-bit keys: numpy's radix sort)
     k_sorted = key[order]
     rank = np.empty(n, dtype=np.intp)
     rank[order] = np.arange(n) - np.searchsorted(k_sorted, k_sorted, side="left")
-    return np.sort(np.argsort(rank, kind="stable")[:n_max])
+    # the n_max first in (rank, index) order: every point of rank < r, then those of rank r by index
+    cum = np.cumsum(np.bincount(rank))
+    r = int(np.searchsorted(cum, n_max, side="left"))
+    below = rank < r
+    extra = np.flatnonzero(rank == r)[:n_max - int(below.sum())]
+    return np.sort(np.concatenate([np.flatnonzero(below), extra]))
 
 
 class _Problem:

@@ -123,12 +123,13 @@ def collection_band(views, store: FeatureStore, pair_list, search: SearchConfig,
     small_ones, large_ones = [], []  # (sample number, inputs, geometry, wide search, view 2's depth range)
     for k, (i, j) in enumerate(sample_pairs(pair_list, sample)):
         inputs, g, _, _ = pair_inputs(views[i], views[j], store)
-        inputs = _queries(inputs, spread_subset(inputs.points1, MAX_QUERIES))
+        rows = spread_subset(inputs.points1, MAX_QUERIES)
+        inputs = _queries(inputs, rows)
         wide = search.replace(tol=options.first_band(views[j].image_size), depth_range=views[i].depth_range)
         if small.fits(len(inputs.points1), len(inputs.points2), wide, strict, g):
             small_ones.append((k, inputs, g, wide, views[j].depth_range))
-        else:
-            large_ones.append((k, views[i], views[j], store, wide, strict))
+        else:  # (its inputs are made again in the task, from the store: a Dask worker has its own)
+            large_ones.append((k, views[i], views[j], store, wide, strict, rows))
     size = per_task(len(large_ones)) if per_task is not None and large_ones else max(1, len(large_ones))
     tasks = [large_ones[k:k + size] for k in range(0, len(large_ones), size)]
     found = {k: r for task in imap(_confident, tasks) for k, r in task}
@@ -152,9 +153,9 @@ def _confident(task) -> list:
     """``[(sample number, signed distances to their segments)]`` of the confident matches of sampled pairs
     on the general path (a task for the runner's workers)."""
     out = []
-    for k, view1, view2, store, wide, strict in task:
+    for k, view1, view2, store, wide, strict, rows in task:
         inputs, g, _, _ = pair_inputs(view1, view2, store)
-        inputs = _queries(inputs, spread_subset(inputs.points1, MAX_QUERIES))
+        inputs = _queries(inputs, rows)
         conf = guided.match(inputs, g, wide, strict)[0]
         out.append((k, _residuals(g, inputs.points1[conf[:, 0]], inputs.points2[conf[:, 1]])))
     return out

@@ -116,6 +116,24 @@ def test_robust_sigma_and_spread_subset():
     assert len(spread_subset(pts[:50], 100)) == 50
 
 
+def test_spread_subset_takes_the_cells_round_robin():
+    """Property: the subset is the first ``n_max`` points in the order (rank within its grid cell, index),
+    counted here by hand, on random sets with duplicates and empty cells."""
+    rng = np.random.default_rng(3)
+    for _ in range(200):
+        n, n_max, cells = int(rng.integers(1, 120)), int(rng.integers(1, 60)), int(rng.integers(1, 6))
+        pts = np.round(rng.uniform(0, rng.choice([3.0, 50.0]), (n, 2)))
+        lo, hi = pts.min(axis=0), pts.max(axis=0) + 1e-9
+        cell = [tuple(np.minimum(np.floor((p - lo) / (hi - lo) * cells).astype(int), cells - 1)) for p in pts]
+        seen = {}
+        rank = []
+        for c in cell:
+            rank.append(seen.get(c, 0))
+            seen[c] = rank[-1] + 1
+        want = sorted(sorted(range(n), key=lambda k: (rank[k], k))[:n_max])
+        assert spread_subset(pts, n_max, cells).tolist() == want
+
+
 def _synthetic_matches(g, n=300, seed=0, noise=0.0, outliers=0):
     rng = np.random.default_rng(seed)
     x1 = rng.uniform([0, 0], [640, 480], (n, 2))
