@@ -333,6 +333,10 @@ def run_parallel(model, image_dir, work: Path, repeats: int, dask: bool) -> dict
             e["cpu_per_wall"] = e.get("cpu_per_wall", []) + [(time.process_time() - c0) / (time.perf_counter() - t0)]
             e["pairs_per_second"].append(report.pairs_per_second)
             e["seconds_matching"].append(report.seconds_matching)
+            for stage in STAGES:
+                e.setdefault(f"seconds_{stage}", []).append(getattr(report, f"seconds_{stage}"))
+            e.setdefault("seconds_rest", []).append(report.seconds_matching - sum(getattr(report, f"seconds_{k}")
+                                                                                  for k in STAGES))
             e["seconds_wall"] = e.get("seconds_wall", []) + [time.perf_counter() - t0]
             got = colmap.read_database_matches(db)
             e["identical"] &= got.keys() == reference.keys() and all(
@@ -348,6 +352,23 @@ def run_parallel(model, image_dir, work: Path, repeats: int, dask: bool) -> dict
         e["speed_up"] = e["pairs_per_second_median"] / one if one else float("nan")
     from _gil import python_share  # (benchmarks/ is on sys.path)
     return {"runners": out, "n_pairs": len(reference), "gil": python_share(model, image_dir, work, cache)}
+
+
+#: The stages of ``MatchReport.seconds_matching`` (its ``seconds_<stage>`` fields).
+STAGES = ("band", "pairs", "verify", "write")
+#: Threads of the extrapolation in the stage table (what a user's machine may have).
+EXTRAPOLATE_TO = 16
+
+
+def extrapolate(t1: float, t2: float, n: int, cap: float = float("inf")) -> tuple[float, float]:
+    """Amdahl's law fitted to a stage's time on 1 and 2 threads: ``(serial share f, time on n threads)``.
+
+    ``t2 = t1 (f + (1 - f) / 2)`` gives ``f = 2 t2 / t1 - 1`` (clipped to [0, 1]); then ``t_n = t1 (f + (1 -
+    f) / n)``, and no faster than ``t1 / cap`` (the pairs' GIL ceiling). On a 2-core machine where the two
+    threads get fewer than 2 cores, ``f`` comes out too large: the estimate is pessimistic.
+    """
+    f = min(1.0, max(0.0, 2.0 * t2 / t1 - 1.0)) if t1 > 0 else 1.0
+    return f, max(t1 * (f + (1.0 - f) / n), t1 / cap)
 
 
 def _pct(a, b):
@@ -455,6 +476,36 @@ def markdown(res: dict) -> list:
                  "one worker's did not.")
         L.append("")
         G = P.get("gil")
+        one, two = P["runners"]["workers=1"], P["runners"].get("workers=2")
+        if two is not None and "seconds_band" in one:
+            med = lambda e, k: float(np.median(e[k]))  # noqa: E731
+            n = EXTRAPOLATE_TO
+            L.append(f"Where the time goes (`MatchReport.seconds_<stage>`, medians), and what Amdahl's law fitted to "
+                     f"1 and 2 threads gives for {n} threads (a model, not a measurement: each stage's serial share "
+                     f"`f = 2 t2 / t1 - 1`, then `t{n} = t1 (f + (1 - f) / {n})`, the pairs no faster than the GIL "
+                     "ceiling below; what the stages leave of `seconds_matching` is taken as serial; the last row "
+                     "sums the medians):\n")
+            L.append(f"| stage | workers=1 (s) | workers=2 (s) | speed-up | serial share f | {n} threads, "
+                     f"estimated (s) |" + (" Dask local:2 (s) |" if "Dask local:2" in P["runners"] else ""))
+            L.append("|---|---:|---:|---:|---:|---:|" + ("---:|" if "Dask local:2" in P["runners"] else ""))
+            total1 = total2 = totaln = 0.0
+            dask = P["runners"].get("Dask local:2")
+            total_d = 0.0
+            for stage in STAGES + ("rest",):
+                t1, t2 = med(one, f"seconds_{stage}"), med(two, f"seconds_{stage}")
+                if stage == "rest":
+                    f, tn = 1.0, t1
+                else:
+                    f, tn = extrapolate(t1, t2, n, G["ceiling"] if (G and stage == "pairs") else float("inf"))
+                td = med(dask, f"seconds_{stage}") if dask else 0.0
+                total1, total2, totaln, total_d = total1 + t1, total2 + t2, totaln + tn, total_d + td
+                name = {"band": "band (`tol=\"auto\"`)", "pairs": "pairs", "verify": "track consensus",
+                        "write": "database writes", "rest": "the rest (Python between stages)"}[stage]
+                L.append(f"| {name} | {t1:.3f} | {t2:.3f} | {t1 / t2 if t2 > 0 else float('nan'):.2f}x | {f:.2f} | "
+                         f"{tn:.3f} |" + (f" {td:.3f} |" if dask else ""))
+            L.append(f"| **matching** | **{total1:.3f}** | **{total2:.3f}** | **{total1 / total2:.2f}x** | | "
+                     f"**{totaln:.3f}** ({total1 / totaln:.1f}x one thread) |" + (f" **{total_d:.3f}** |" if dask else ""))
+            L.append("")
         if G:
             L.append(f"**Threads stop near {G['ceiling']:.1f}x, on any number of cores.** Matched again on one "
                      f"thread, the {G['pairs']} pairs took {G['cpu_s']:.2f} s of CPU, {G['kernels_s']:.2f} s of it "

@@ -89,9 +89,13 @@ class MatchReport:
         Pairs written in this run.
     n_matches, n_inliers : int
         Written in this run.
-    seconds_features, seconds_matching, seconds_verify : float
-        Wall time of feature extraction (including cache hits), of matching
-        with writing, and, within the latter, of the track consensus.
+    seconds_features, seconds_matching : float
+        Wall time of feature extraction (including cache hits), and of matching
+        with writing.
+    seconds_band, seconds_pairs, seconds_verify, seconds_write : float
+        The stages of ``seconds_matching``: the band (``tol="auto"``), the pairs,
+        the track consensus, the database writes (with ``verify="pairs"`` the
+        writes come as the pairs do; ``seconds_pairs`` excludes them).
     pairs_per_second : float
         Pairs matched per second of ``seconds_matching``.
     runner : str
@@ -129,7 +133,10 @@ class MatchReport:
     n_inliers: int = 0
     seconds_features: float = 0.0
     seconds_matching: float = 0.0
+    seconds_band: float = 0.0
+    seconds_pairs: float = 0.0
     seconds_verify: float = 0.0
+    seconds_write: float = 0.0
     pairs_per_second: float = 0.0
     runner: str = "this process"
     features: str = "extract"
@@ -144,7 +151,9 @@ class MatchReport:
                  f"images: {self.n_images}, pairs: {self.n_pairs} ({self.n_skipped} already written, skipped)",
                  f"matches written: {self.n_matches}, inliers: {self.n_inliers}",
                  f"features: {self.seconds_features:.1f} s ({'read from the database' if self.features == SOURCE else 'extracted'}); "
-                 f"matching: {self.seconds_matching:.1f} s, {self.pairs_per_second:.1f} pairs/s on {self.runner}"]
+                 f"matching: {self.seconds_matching:.1f} s, {self.pairs_per_second:.1f} pairs/s on {self.runner} "
+                 f"(band {self.seconds_band:.2f} s, pairs {self.seconds_pairs:.2f} s, consensus "
+                 f"{self.seconds_verify:.2f} s, writes {self.seconds_write:.2f} s)"]
         b, v = self.band, self.verify
         if b:
             lines.append(f"band (tol auto): {b['tol']:.2f} px" + (
@@ -487,6 +496,7 @@ class _Run:
             self.search = self.search.replace(tol=band.tol)
             if self.consensus is not None and self.consensus.tau is None:
                 self.consensus = self.consensus.replace(tau=band.tau)
+        report.seconds_band = time.perf_counter() - t0
         lengths, samples = np.zeros(3), 0
         if self.consensus is None:  # each pair on its own: written as it comes back
             todo = [p for p in self.pair_list if p not in done]
@@ -495,7 +505,9 @@ class _Run:
             try:
                 for res in self._results(runner, self._jobs(todo, None)):
                     i, j = todo[res.index]
+                    tw = time.perf_counter()
                     write_pair(db, views[i], views[j], res.matches, res.inliers)
+                    report.seconds_write += time.perf_counter() - tw
                     report.n_matches += len(res.matches)
                     report.n_inliers += len(res.inliers)
                     lengths += res.lengths
@@ -513,6 +525,7 @@ class _Run:
                 samples += res.samples
                 self.tick("pairs", n, len(todo))
             t1 = time.perf_counter()
+            report.seconds_pairs = t1 - t0 - report.seconds_band
             candidates = [(i, j, r.inliers, r.ratios) for (i, j), r in zip(todo, results)]
             pinhole = (lambda k: self.store.pinhole(views[k]))
             if self.consensus.complete:
@@ -535,6 +548,7 @@ class _Run:
                           f"{named}{', ...' if len(suspects) > 5 else ''}, against {100 * median:.0f} % for the "
                           f"median image; their poses look off by more than the band ({self.search.tol:.1f} px), "
                           "and their matches are left out: check them")
+            tw = time.perf_counter()
             db = pycolmap.Database.open(str(self.path))
             try:
                 block = []
@@ -557,7 +571,10 @@ class _Run:
                     self.tick("write", n, len(todo))
             finally:
                 db.close()
+            report.seconds_write = time.perf_counter() - tw
         report.seconds_matching = time.perf_counter() - t0
+        if self.consensus is None:
+            report.seconds_pairs = report.seconds_matching - report.seconds_band - report.seconds_write
         matched = len(todo) if self.consensus is not None else report.n_pairs_done
         report.pairs_per_second = matched / report.seconds_matching if report.seconds_matching > 0 else 0.0
         if samples:

@@ -156,6 +156,17 @@ def test_track_consensus_keeps_more_true_matches_than_the_pair_rule(folder, refe
     assert rec_t.num_points3D() >= rec_p.num_points3D() and _accuracy(rec_t, collection) > 0.9
 
 
+def test_report_times_its_stages(reference, reference_pairs):
+    """``seconds_matching`` splits into the band, the pairs, the consensus and the writes (the summary shows
+    them); with ``verify="pairs"`` there is no consensus, and the writes come with the pairs."""
+    for (_, rep, _), consensus in ((reference, True), (reference_pairs, False)):
+        stages = [rep.seconds_band, rep.seconds_pairs, rep.seconds_verify, rep.seconds_write]
+        assert all(t >= 0 for t in stages) and rep.seconds_band > 0 and rep.seconds_pairs > 0 and rep.seconds_write > 0
+        assert (rep.seconds_verify > 0) == consensus
+        assert sum(stages) <= rep.seconds_matching <= sum(stages) + 0.05 + 0.1 * rep.seconds_matching
+        assert f"pairs {rep.seconds_pairs:.2f} s, consensus {rep.seconds_verify:.2f} s" in rep.summary()
+
+
 def test_poses_json_gives_the_same_matches_as_the_model(folder, reference, tmp_path):
     db = tmp_path / "json.db"
     report = colmap.match_model(folder["poses"], folder["images"], db, depth_range="none")
