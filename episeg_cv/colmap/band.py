@@ -42,7 +42,7 @@ from ..matching.auto import clip_tol, strict_rule
 from ..matching.config import AcceptRule, AutoTol, SearchConfig
 from ..matching.distances import Distances
 from ..refinement import robust_sigma, segment_residuals, spread_subset
-from .job import pair_inputs
+from .job import pair_inputs, pinhole_count
 from .store import FeatureStore
 
 __all__ = ["CollectionBand", "collection_band", "SAMPLE_PAIRS", "TAU_MIN", "MAX_QUERIES"]
@@ -122,14 +122,14 @@ def collection_band(views, store: FeatureStore, pair_list, search: SearchConfig,
     largest = max((v.image_size for v in views), key=lambda s: s[0] * s[1])
     small_ones, large_ones = [], []  # (sample number, inputs, geometry, wide search, view 2's depth range)
     for k, (i, j) in enumerate(sample_pairs(pair_list, sample)):
-        inputs, g, _, _ = pair_inputs(views[i], views[j], store)
-        rows = spread_subset(inputs.points1, MAX_QUERIES)
-        inputs = _queries(inputs, rows)
         wide = search.replace(tol=options.first_band(views[j].image_size), depth_range=views[i].depth_range)
-        if small.fits(len(inputs.points1), len(inputs.points2), wide, strict, g):
-            small_ones.append((k, inputs, g, wide, views[j].depth_range))
-        else:  # (its inputs are made again in the task, from the store: a Dask worker has its own)
-            large_ones.append((k, views[i], views[j], store, wide, strict, rows))
+        # (a View's geometry has no covariance)
+        if small.fits(min(pinhole_count(views[i], store), MAX_QUERIES), pinhole_count(views[j], store), wide, strict):
+            inputs, g, _, _ = pair_inputs(views[i], views[j], store)
+            small_ones.append((k, _queries(inputs, spread_subset(inputs.points1, MAX_QUERIES)), g, wide,
+                               views[j].depth_range))
+        else:  # its inputs are made in its task, on the runner's threads
+            large_ones.append((k, views[i], views[j], store, wide, strict))
     size = per_task(len(large_ones)) if per_task is not None and large_ones else max(1, len(large_ones))
     tasks = [large_ones[k:k + size] for k in range(0, len(large_ones), size)]
     found = {k: r for task in imap(_confident, tasks) for k, r in task}
@@ -153,9 +153,9 @@ def _confident(task) -> list:
     """``[(sample number, signed distances to their segments)]`` of the confident matches of sampled pairs
     on the general path (a task for the runner's workers)."""
     out = []
-    for k, view1, view2, store, wide, strict, rows in task:
+    for k, view1, view2, store, wide, strict in task:
         inputs, g, _, _ = pair_inputs(view1, view2, store)
-        inputs = _queries(inputs, rows)
+        inputs = _queries(inputs, spread_subset(inputs.points1, MAX_QUERIES))
         conf = guided.match(inputs, g, wide, strict)[0]
         out.append((k, _residuals(g, inputs.points1[conf[:, 0]], inputs.points2[conf[:, 1]])))
     return out

@@ -14,7 +14,7 @@ from ..matching.filtering import keep_mask
 from .store import FeatureStore
 from .views import View
 
-__all__ = ["PairJob", "PairResult", "match_pair", "match_pairs", "pair_inputs"]
+__all__ = ["PairJob", "PairResult", "match_pair", "match_pairs", "pair_inputs", "pinhole_count"]
 
 
 @dataclass(frozen=True)
@@ -66,6 +66,12 @@ def pair_inputs(view1: View, view2: View, store: FeatureStore):
     q2, d2, idx2 = _pinhole_rows(view2, store)
     # the store's arrays were checked when they were read (finite, one row per keypoint, one dtype)
     return guided.MatchInputs(Distances(d1, d2, store.norm), q1, q2), view1.geometry_to(view2), idx1, idx2
+
+
+def pinhole_count(view: View, store: FeatureStore) -> int:
+    """How many keypoints of ``view`` have a pinhole position (the rows :func:`pair_inputs` keeps)."""
+    q = store.load(view)[1]
+    return len(q) if np.isfinite(q).all() else int((np.isfinite(q[:, 0]) & np.isfinite(q[:, 1])).sum())
 
 
 def _pinhole_rows(view: View, store: FeatureStore):
