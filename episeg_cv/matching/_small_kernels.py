@@ -48,9 +48,66 @@ def _distance(s, root):
 
 
 @nb.njit(cache=True, nogil=True)
-def _slices(lo, hi, keys):
-    """``[start, stop)`` of the sorted ``keys`` within ``[lo, hi]``."""
-    return np.searchsorted(keys, lo, side="left"), np.searchsorted(keys, hi, side="right")
+def _bucket(k, kmin, scale, last):
+    """The bucket of key ``k`` (monotone in ``k``): ``floor((k - kmin) * scale)`` clipped to ``[0, last]``."""
+    return int(min(max((k - kmin) * scale, 0.0), float(last)))
+
+
+@nb.njit(cache=True, nogil=True)
+def _axis(x2, a0, a1, keys, order, ys, table):
+    """The keypoints ``x2 (N2, 2)`` sorted along the axis ``(a0, a1)``: into ``keys (N2,)`` (their positions
+    along it), ``order (N2,)`` (their rows), ``ys (N2, 2)`` (their pixels) and ``table (N2 + 1,)``, where
+    ``table[c]`` is the first sorted position whose bucket (:func:`_bucket`, ``N2`` buckets over the keys'
+    range) is ``c`` or more. Returns ``(kmin, scale)`` of the buckets."""
+    n2 = x2.shape[0]
+    v = np.empty(n2)
+    for p in range(n2):
+        v[p] = x2[p, 0] * a0 + x2[p, 1] * a1
+    order[:] = np.argsort(v)
+    for p in range(n2):
+        t = order[p]
+        keys[p] = v[t]
+        ys[p, 0], ys[p, 1] = x2[t, 0], x2[t, 1]
+    kmin = keys[0] if n2 else 0.0
+    span = keys[n2 - 1] - kmin if n2 else 0.0
+    scale = n2 / span if span > 0 else 0.0
+    last = max(n2 - 1, 0)
+    c = 0
+    for p in range(n2):
+        b = _bucket(keys[p], kmin, scale, last)
+        while c <= b:
+            table[c] = p
+            c += 1
+    while c <= n2:
+        table[c] = n2
+        c += 1
+    return kmin, scale
+
+
+@nb.njit(cache=True, nogil=True)
+def _slices(lo, hi, keys, table, kmin, scale):
+    """``[start, stop)`` of the sorted ``keys`` within ``[lo, hi]`` (as ``np.searchsorted`` with
+    ``side="left"`` and ``"right"``): from the first position of each bound's bucket (``table``,
+    :func:`_axis`), a few steps forward. Every key before that position lies in a lower bucket, so below
+    the bound."""
+    n = keys.shape[0]
+    last = max(n - 1, 0)
+    s = table[_bucket(lo, kmin, scale, last)]
+    while s < n and keys[s] < lo:
+        s += 1
+    e = max(s, table[_bucket(hi, kmin, scale, last)])
+    while e < n and keys[e] <= hi:
+        e += 1
+    return s, e
+
+
+@nb.njit(cache=True, nogil=True)
+def _image_axes(x2, keys, order, ys, table):
+    """:func:`_axis` along ``x`` and ``y`` into row 0 and 1 of each output; ``(2, 2)`` their ``(kmin, scale)``."""
+    out = np.empty((2, 2))
+    out[0, 0], out[0, 1] = _axis(x2, 1.0, 0.0, keys[0], order[0], ys[0], table[0])
+    out[1, 0], out[1, 1] = _axis(x2, 0.0, 1.0, keys[1], order[1], ys[1], table[1])
+    return out
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
@@ -68,6 +125,21 @@ def nearest(x1, x2, A, B, norm, root, H, b, zmin, zmax, rect, eps, tol, pad_j, r
     without padding). ``chunk`` / ``round_to``: the padding's BLAS blocks
     (:data:`~.distances.PAD_CHUNK`, :data:`~.distances.PAD_ROUND`).
     """
+    n2 = x2.shape[0]
+    keys, order = np.empty((3, n2)), np.empty((3, n2), dtype=np.int64)
+    ys, table = np.empty((3, n2, 2)), np.empty((3, n2 + 1), dtype=np.int64)
+    buckets = np.empty((3, 2))
+    buckets[:2] = _image_axes(x2, keys, order, ys, table)
+    return _nearest_sorted(x1, x2, A, B, norm, root, H, b, zmin, zmax, rect, eps, tol, pad_j, ratio, mutual_rule,
+                           prefilter, chunk, round_to, keys, order, ys, table, buckets)
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _nearest_sorted(x1, x2, A, B, norm, root, H, b, zmin, zmax, rect, eps, tol, pad_j, ratio, mutual_rule, prefilter,
+                    chunk, round_to, keys, order, ys, table, buckets):
+    """:func:`nearest` with image 2 sorted along ``x`` and ``y`` already (rows 0 and 1 of ``keys``,
+    ``order``, ``ys``, ``table``, ``buckets``: :func:`_image_axes`); row 2, the segments' own axis, is
+    filled here."""
     n1, n2 = x1.shape[0], x2.shape[0]
     start, end, line = np.empty((n1, 2)), np.empty((n1, 2)), np.empty((n1, 3))
     p_inf, a, valid = np.empty((n1, 2)), np.empty((n1, 3)), np.empty(n1, dtype=np.bool_)
@@ -89,14 +161,7 @@ def nearest(x1, x2, A, B, norm, root, H, b, zmin, zmax, rect, eps, tol, pad_j, r
     nu = np.hypot(u0, u1)
     a0, a1 = (-u1 / nu, u0 / nu) if nu > 0 else (1.0, 0.0)  # the normal of the mean direction
     axes = np.array([[1.0, 0.0], [0.0, 1.0], [a0, a1]])
-    keys, order, ys = np.empty((3, n2)), np.empty((3, n2), dtype=np.int64), np.empty((3, n2, 2))
-    for ax in range(3):
-        v = x2[:, 0] * axes[ax, 0] + x2[:, 1] * axes[ax, 1]
-        order[ax] = np.argsort(v)
-        for p in range(n2):
-            t = order[ax, p]
-            keys[ax, p] = v[t]
-            ys[ax, p, 0], ys[ax, p, 1] = x2[t, 0], x2[t, 1]
+    buckets[2, 0], buckets[2, 1] = _axis(x2, a0, a1, keys[2], order[2], ys[2], table[2])
     rows = np.empty((3, n1), dtype=np.int64)
     lo, hi = np.empty((3, n1), dtype=np.int64), np.empty((3, n1), dtype=np.int64)
     n_rows = np.zeros(3, dtype=np.int64)
@@ -109,7 +174,7 @@ def nearest(x1, x2, A, B, norm, root, H, b, zmin, zmax, rect, eps, tol, pad_j, r
         best, s0, s1 = -1, 0, 0
         for ax in range(3):
             kp, kq = P0 * axes[ax, 0] + P1 * axes[ax, 1], Q0 * axes[ax, 0] + Q1 * axes[ax, 1]
-            c0, c1 = _slices(min(kp, kq) - g, max(kp, kq) + g, keys[ax])
+            c0, c1 = _slices(min(kp, kq) - g, max(kp, kq) + g, keys[ax], table[ax], buckets[ax, 0], buckets[ax, 1])
             if best < 0 or c1 - c0 < s1 - s0:
                 best, s0, s1 = ax, c0, c1
         if s1 > s0:
@@ -237,12 +302,28 @@ def reverse_keep(x1, x2, i, j, Hi, bi, zmin, zmax, rect1, eps, tol, is_line):
 
 
 # -- many small pairs ------------------------------------------------------------------------
+@nb.njit(cache=True, nogil=True)
+def _sort_images(u0, u1, X, first, IK, IO, IY, IT, IB):
+    """:func:`_image_axes` of images ``u0:u1`` (keypoints ``X[first[u]:first[u + 1]]``), once for all their
+    pairs: image ``u``'s rows are columns ``first[u]:first[u + 1]`` of ``IK``, ``IO`` (local rows), ``IY``,
+    and ``first[u] + u`` on of ``IT`` (one longer); ``IB[u]`` its buckets."""
+    for u in range(u0, u1):
+        f, g = first[u], first[u + 1]
+        IB[u] = _image_axes(X[f:g], IK[:, f:g], IO[:, f:g], IY[:, f:g], IT[:, f + u:g + u + 1])
+
+
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _both_ways(x1, x2, A, B, norm, root, H, b, zr1, rect1, Hi, bi, zr2, rect2, eps, tol, pad_j, loose, mutual_rule,
-               chunk, round_to):
-    """One pair of :func:`pairs`: ``(i, j, ratio, inlier)`` of the candidates with ratio below ``loose``."""
-    i, j, r, mu, _ = nearest(x1, x2, A, B, norm, root, H, b, zr1[0:1], zr1[1:2], rect1, eps, tol, pad_j, loose,
-                             mutual_rule, True, chunk, round_to)
+               chunk, round_to, k2, o2, y2, t2, b2):
+    """One pair of :func:`pairs`: ``(i, j, ratio, inlier)`` of the candidates with ratio below ``loose``;
+    ``k2, o2, y2, t2, b2``: image 2 sorted along ``x`` and ``y`` (:func:`_sort_images`)."""
+    n2 = x2.shape[0]
+    keys, order = np.empty((3, n2)), np.empty((3, n2), dtype=np.int64)
+    ys, table = np.empty((3, n2, 2)), np.empty((3, n2 + 1), dtype=np.int64)
+    buckets = np.empty((3, 2))
+    keys[:2], order[:2], ys[:2], table[:2], buckets[:2] = k2, o2, y2, t2, b2
+    i, j, r, mu, _ = _nearest_sorted(x1, x2, A, B, norm, root, H, b, zr1[0:1], zr1[1:2], rect1, eps, tol, pad_j,
+                                     loose, mutual_rule, True, chunk, round_to, keys, order, ys, table, buckets)
     ok = rule_passes(r, mu, loose, mutual_rule, True)
     ki, kj, kr = i[ok], j[ok], r[ok]
     # the reverse test: each match's keypoint of image 2 must have its query on its own segment in image 1
@@ -252,17 +333,26 @@ def _both_ways(x1, x2, A, B, norm, root, H, b, zr1, rect1, Hi, bi, zr2, rect2, e
 
 @nb.njit(cache=True, nogil=True)
 def _pair_range(p0, p1, X, A, first, img, H, b, Hi, bi, zr, rects, eps, tol, pad, pad_first, norm, root, loose,
-                mutual_rule, chunk, round_to, out_first, out_i, out_j, out_r, out_in, out_n):
+                mutual_rule, chunk, round_to, out_first, out_i, out_j, out_r, out_in, out_n, IK, IO, IY, IT, IB):
     for p in range(p0, p1):
         u, v = img[p, 0], img[p, 1]
-        ki, kj, kr, inl = _both_ways(X[first[u]:first[u + 1]], X[first[v]:first[v + 1]], A[first[u]:first[u + 1]],
-                                     A[first[v]:first[v + 1]], norm, root, H[p], b[p], zr[u], rects[p, 0], Hi[p],
-                                     bi[p], zr[v], rects[p, 1], eps, tol[p], pad[pad_first[p]:pad_first[p + 1]], loose,
-                                     mutual_rule, chunk, round_to)
+        f, g = first[v], first[v + 1]
+        ki, kj, kr, inl = _both_ways(X[first[u]:first[u + 1]], X[f:g], A[first[u]:first[u + 1]], A[f:g], norm, root,
+                                     H[p], b[p], zr[u], rects[p, 0], Hi[p], bi[p], zr[v], rects[p, 1], eps, tol[p],
+                                     pad[pad_first[p]:pad_first[p + 1]], loose, mutual_rule, chunk, round_to,
+                                     IK[:, f:g], IO[:, f:g], IY[:, f:g], IT[:, f + v:g + v + 1], IB[v])
         o = out_first[p]
         for k in range(ki.shape[0]):
             out_i[o + k], out_j[o + k], out_r[o + k], out_in[o + k] = ki[k], kj[k], kr[k], inl[k]
         out_n[p] = ki.shape[0]
+
+
+@nb.njit(cache=True, nogil=True)
+def _image_buffers(X, first):
+    """Empty ``IK, IO, IY, IT, IB`` for :func:`_sort_images` of every image."""
+    n, m = X.shape[0], first.shape[0] - 1
+    return (np.empty((2, n)), np.empty((2, n), dtype=np.int64), np.empty((2, n, 2)),
+            np.empty((2, n + m), dtype=np.int64), np.empty((m, 2, 2)))
 
 
 @nb.njit(cache=True, nogil=True)
@@ -277,16 +367,22 @@ def pairs(X, A, first, img, H, b, Hi, bi, zr, rects, eps, tol, pad, pad_first, n
     ``rects[p, 0]`` / ``rects[p, 1]`` the two images grown by it, padding references ``pad[pad_first[p]:pad_first[p
     + 1]]``. Its ``out_n[p]`` candidates go to rows ``out_first[p]:`` of ``out_i, out_j`` (keypoint
     rows in the two images), ``out_r`` (ratio) and ``out_in`` (the reverse test); ``out_first[p]``
-    leaves room for one per query.
+    leaves room for one per query. Each image is sorted along ``x`` and ``y`` once, for all its pairs.
     """
+    IK, IO, IY, IT, IB = _image_buffers(X, first)
+    _sort_images(0, first.shape[0] - 1, X, first, IK, IO, IY, IT, IB)
     _pair_range(0, img.shape[0], X, A, first, img, H, b, Hi, bi, zr, rects, eps, tol, pad, pad_first, norm, root,
-                loose, mutual_rule, chunk, round_to, out_first, out_i, out_j, out_r, out_in, out_n)
+                loose, mutual_rule, chunk, round_to, out_first, out_i, out_j, out_r, out_in, out_n, IK, IO, IY, IT, IB)
 
 
 @nb.njit(cache=True, nogil=True, parallel=True)
 def pairs_parallel(X, A, first, img, H, b, Hi, bi, zr, rects, eps, tol, pad, pad_first, norm, root, loose,
                    mutual_rule, chunk, round_to, out_first, out_i, out_j, out_r, out_in, out_n, blocks):
-    """:func:`pairs` on threads, a pair per item (each pair's outputs are its own rows)."""
+    """:func:`pairs` on threads, an image, then a pair, per item (each pair's outputs are its own rows)."""
+    IK, IO, IY, IT, IB = _image_buffers(X, first)
+    for u in prange(first.shape[0] - 1):
+        _sort_images(u, u + 1, X, first, IK, IO, IY, IT, IB)
     for p in prange(img.shape[0]):
         _pair_range(p, p + 1, X, A, first, img, H, b, Hi, bi, zr, rects, eps, tol, pad, pad_first, norm, root,
-                    loose, mutual_rule, chunk, round_to, out_first, out_i, out_j, out_r, out_in, out_n)
+                    loose, mutual_rule, chunk, round_to, out_first, out_i, out_j, out_r, out_in, out_n, IK, IO, IY,
+                    IT, IB)

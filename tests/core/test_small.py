@@ -138,3 +138,52 @@ def test_many_pairs_in_one_call_equal_nearest_and_keep_mask():
     assert len(found[0][0]) != len(found[1][0])  # the depth ranges mattered
     assert any(f[3].any() for f in found) and any((~f[3]).any() for f in found)  # the reverse test can fail
     assert small.many([], rule, 1.0, "l2", None) == []
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_bucket_slices_equal_searchsorted(seed):
+    """Property: the bucket table's ``[start, stop)`` is ``np.searchsorted``'s (left, right), with ties,
+    one distinct key, bounds outside the keys' range and empty slices."""
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(0, 60))
+    pts = rng.integers(0, 5, (n, 2)).astype(float) if seed % 2 else rng.uniform(-50, 400, (n, 2))
+    if seed == 6:
+        pts[:] = 7.0  # every key equal: a zero span
+    a0, a1 = np.cos(seed), np.sin(seed)
+    keys, order, ys, table = np.empty(n), np.empty(n, np.int64), np.empty((n, 2)), np.empty(n + 1, np.int64)
+    kmin, scale = _small_kernels._axis(pts, a0, a1, keys, order, ys, table)
+    v = pts[:, 0] * a0 + pts[:, 1] * a1
+    assert np.array_equal(keys, v[order]) and np.array_equal(ys, pts[order]) and np.all(np.diff(keys) >= 0)
+    bounds = rng.uniform(-500, 500, (40, 2))
+    if n:
+        bounds = np.vstack([bounds, np.repeat(keys[:, None], 2, 1), keys[rng.integers(0, n, (40, 2))]])
+    for lo, hi in bounds:
+        got = _small_kernels._slices(lo, hi, keys, table, kmin, scale)
+        want = np.searchsorted(keys, lo, "left"), np.searchsorted(keys, hi, "right")
+        assert got == (want[0], max(want[0], want[1]))
+
+
+@pytest.mark.parametrize("parallel", [False, True])
+def test_many_pairs_of_distinct_images(monkeypatch, parallel):
+    """small.many over images of different sizes (one empty, one of a single keypoint), each sorted once
+    for all its pairs, serial and on threads: every pair as guided.nearest finds it alone."""
+    rng = np.random.default_rng(4)
+    sizes = [120, 0, 1, 200, 75]
+    pts = [rng.uniform(0, 320, (n, 2)) * [1, 0.75] for n in sizes]
+    desc = [rng.integers(0, 4, (n, 16)).astype(np.float32) for n in sizes]
+    rows = [guided.MatchInputs.check(d, d, p, p, "l2").distances.a for d, p in zip(desc, pts)]
+    pairs = [(0, 3), (3, 0), (0, 1), (1, 4), (2, 3), (4, 3), (4, 0)]
+    geos = [TwoViewGeometry(K, K, cv2.Rodrigues(rng.normal(0, 0.2, 3))[0], rng.normal(0, 1, 3), image_size1=SIZE,
+                            image_size2=SIZE) for _ in pairs]
+    rule = AcceptRule(ratio=1.0, pad=0)
+    items = [small.SmallPair(pts[u], rows[u], pts[v], rows[v], g, 8.0, (0.0, np.inf), (0.0, np.inf))
+             for (u, v), g in zip(pairs, geos)]
+    monkeypatch.setattr(small.threads, "use_parallel", lambda items: parallel)
+    found = small.many(items, rule, 1.0, "l2", None)
+    for (u, v), g, (i, j, r, inlier) in zip(pairs, geos, found):
+        inputs = guided.MatchInputs.check(desc[u], desc[v], pts[u], pts[v], "l2")
+        ii, jj, rr, mu, _ = guided.nearest(inputs, g, SearchConfig(tol=8.0), rule, prefilter=True)
+        keep = (rr < 1.0) & mu
+        assert np.array_equal(i, ii[keep]) and np.array_equal(j, jj[keep]) and np.array_equal(r, rr[keep])
+        assert inlier.shape == i.shape
+    assert sum(len(f[0]) for f in found) > 50  # the pairs of the large images found matches
