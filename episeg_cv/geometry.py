@@ -77,6 +77,14 @@ def _skew(v: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
+def _camera_inverse(K: np.ndarray) -> np.ndarray:
+    """``K^-1`` of a checked camera matrix (upper triangular, last row ``[0, 0, 1]``), in closed form:
+    a collection derives two per pair, and ``np.linalg.inv`` costs more than the arithmetic."""
+    (fx, s, cx), (_, fy, cy), _ = K.tolist()
+    return np.array([[1 / fx, -s / (fx * fy), (s * cy - cx * fy) / (fx * fy)], [0.0, 1 / fy, -cy / fy],
+                     [0.0, 0.0, 1.0]])
+
+
 def _rect(size: tuple[int, int], margin: float) -> tuple[float, float, float, float]:
     w, h = size
     return -0.5 - margin, w - 0.5 + margin, -0.5 - margin, h - 0.5 + margin
@@ -371,7 +379,7 @@ class TwoViewGeometry(EpipolarGeometry):
         for a in (self.K1, self.K2, self.R, self.t):
             a.flags.writeable = False
         #: (3, 3) the infinite homography ``K2 R K1^-1``: ``a = H [x1; 1]``.
-        self.infinity_homography = self.K2 @ self.R @ np.linalg.inv(self.K1)
+        self.infinity_homography = self.K2 @ self.R @ _camera_inverse(self.K1)
         #: (3,) the homogeneous epipole in image 2, ``K2 t``.
         self.epipole_homogeneous = self.K2 @ self.t
         self.infinity_homography.flags.writeable = False
@@ -488,7 +496,7 @@ class TwoViewGeometry(EpipolarGeometry):
     @property
     def fundamental_matrix(self) -> np.ndarray:
         """(3, 3) ``F = K2^-T E K1^-1``, with ``[x2, 1] F [x1, 1] = 0`` in pixels."""
-        return np.linalg.inv(self.K2).T @ self.essential_matrix @ np.linalg.inv(self.K1)
+        return _camera_inverse(self.K2).T @ self.essential_matrix @ _camera_inverse(self.K1)
 
     def __repr__(self) -> str:
         return (f"TwoViewGeometry(R=rotvec {np.round(_rotvec(self.R), 4).tolist()}, t={np.round(self.t, 4).tolist()}, "

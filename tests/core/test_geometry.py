@@ -694,3 +694,14 @@ def test_margin_grows_the_clip_rectangle():
     away = geom.segments([[20.0, 103.0]])
     assert not away.valid[0]
     assert geom.segments([[20.0, 103.0]], margin=5.0).valid[0]
+
+
+def test_camera_inverse_is_the_inverse():
+    """Property: the closed-form ``K^-1`` (skew, off-centre principal points, focal lengths 1 to 1e5)."""
+    from episeg_cv.geometry import _camera_inverse
+
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        f = 10 ** rng.uniform(0, 5, 2)
+        K = np.array([[f[0], rng.normal(0, 5), rng.uniform(-1e3, 1e4)], [0, f[1], rng.uniform(-1e3, 1e4)], [0, 0, 1]])
+        np.testing.assert_allclose(_camera_inverse(K), np.linalg.inv(K), rtol=1e-12, atol=1e-15)
