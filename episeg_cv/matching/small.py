@@ -33,8 +33,9 @@ __all__ = ["SMALL_PAIRS", "SmallPair", "fits", "nearest", "many"]
 
 #: The largest ``N1 * N2`` matched in one call (about 720 x 720). The box slices scan more keypoints than
 #: the index's pencil buckets, so large pairs are faster with the index: one call against the index path,
-#: one thread, uniform keypoints, forward motion 1.65x at 250, 1.18x at 500, 0.84x at 1000 keypoints a
-#: side; lateral 2.0x, 1.5x, 1.15x (``benchmarks/small_pairs.py``). Speed only: the results are the same.
+#: one thread, uniform keypoints, forward motion 2.1x at 250, 1.34x at 500, 1.06x at 1000 keypoints a
+#: side, 0.77x at 2000; lateral 2.5x, 1.65x, 1.41x, 1.17x (``benchmarks/small_pairs.py``). Beyond about
+#: 720 a side forward motion gains nothing. Speed only: the results are the same.
 SMALL_PAIRS = 1 << 19
 
 
