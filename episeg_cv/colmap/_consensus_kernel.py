@@ -230,6 +230,36 @@ def distinct_views(node_image, centers, X, nodes, count, cos_min_angle, dirs):
 
 
 @nb.njit(cache=True, nogil=True)
+def number_observations(img_a, img_b, pairs, start):
+    """The candidates' ends numbered densely in (image, keypoint) order: ``(eu, ev, node_image, node_kp)``.
+
+    Candidate ``e`` joins keypoint ``pairs[e, 0]`` of image ``img_a[e]`` to ``pairs[e, 1]`` of ``img_b[e]``;
+    image ``k``'s keypoints are the ids ``start[k]:start[k + 1]`` (checked in range by the caller); the used
+    ids are renumbered ``0 .. n-1`` in order."""
+    m = img_a.shape[0]
+    used = np.zeros(start[-1] + 1, np.int64)  # then: each id's new number plus one
+    for e in range(m):
+        used[start[img_a[e]] + pairs[e, 0]] = 1
+        used[start[img_b[e]] + pairs[e, 1]] = 1
+    n = 0
+    for k in range(start.shape[0] - 1):
+        for f in range(start[k], start[k + 1]):
+            if used[f]:
+                n += 1
+                used[f] = n
+    node_image, node_kp = np.empty(n, np.int64), np.empty(n, np.int64)
+    for k in range(start.shape[0] - 1):
+        for f in range(start[k], start[k + 1]):
+            if used[f]:
+                node_image[used[f] - 1], node_kp[used[f] - 1] = k, f - start[k]
+    eu, ev = np.empty(m, np.int64), np.empty(m, np.int64)
+    for e in range(m):
+        eu[e] = used[start[img_a[e]] + pairs[e, 0]] - 1
+        ev[e] = used[start[img_b[e]] + pairs[e, 1]] - 1
+    return eu, ev, node_image, node_kp
+
+
+@nb.njit(cache=True, nogil=True)
 def _stable_by_key(items, keys, n_keys):
     """``items`` reordered by ``keys`` (ints in ``[0, n_keys)``, one per item), ties in their order: a
     counting sort, the order a stable sort by key gives, in linear time."""

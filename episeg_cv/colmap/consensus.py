@@ -239,35 +239,29 @@ def _observations(img_a, img_b, pairs, keypoints, n_views: int):
 
     A dense numbering: each view's keypoints get a block of ids (its number of keypoints, from
     ``keypoints``, called once per view with candidates), and the used ids are renumbered in order (the
-    numbering of ``np.unique`` of the (image, keypoint) keys, 8x faster on 660k ends).
+    numbering of ``np.unique`` of the (image, keypoint) keys), compiled
+    (:func:`._consensus_kernel.number_observations`: 8.5 ms for this function on the 24-view room's
+    660k ends, 14.6 ms in NumPy, the same arrays).
     """
-    img = np.concatenate([img_a, img_b])
-    kp = np.concatenate([pairs[:, 0], pairs[:, 1]])
     xy_of, counts = {}, np.zeros(n_views, np.int64)
-    for k in np.flatnonzero(np.bincount(img, minlength=n_views)):
+    for k in np.flatnonzero(np.bincount(img_a, minlength=n_views) + np.bincount(img_b, minlength=n_views)):
         xy_of[k] = np.asarray(keypoints(int(k)), dtype=np.float64).reshape(-1, 2)
         counts[k] = len(xy_of[k])
-    beyond = kp >= counts[img]
-    if beyond.any():
-        k = int(img[np.argmax(beyond)])
-        raise ValueError(f"candidates: keypoint {int(kp[img == k].max())} of view {k} is beyond its "
-                         f"{counts[k]} keypoints")
+    for img, kp in ((img_a, pairs[:, 0]), (img_b, pairs[:, 1])):
+        beyond = kp >= counts[img]
+        if beyond.any():
+            k = int(img[np.argmax(beyond)])
+            top = max(int(kp[img == k].max()), int(pairs[img_a == k, 0].max(initial=0)),
+                      int(pairs[img_b == k, 1].max(initial=0)))
+            raise ValueError(f"candidates: keypoint {top} of view {k} is beyond its {counts[k]} keypoints")
     start = np.concatenate([[0], np.cumsum(counts)])
-    flat = start[img] + kp
-    used = np.zeros(start[-1], dtype=bool)
-    used[flat] = True
-    nodes = np.flatnonzero(used)
-    ids = np.cumsum(used, dtype=np.int64) - 1
-    m = len(img_a)
-    eu, ev = ids[flat[:m]], ids[flat[m:]]
-    node_image = np.searchsorted(start, nodes, side="right") - 1
-    node_kp = nodes - start[node_image]
-    node_xy = np.empty((len(nodes), 2), dtype=np.float64)
+    eu, ev, node_image, node_kp = _consensus_kernel.number_observations(img_a, img_b, pairs, start)
+    node_xy = np.empty((len(node_kp), 2), dtype=np.float64)
     bounds = np.searchsorted(node_image, np.arange(n_views + 1))
     for k, xy in xy_of.items():
         a, b = bounds[k], bounds[k + 1]
         node_xy[a:b] = xy[node_kp[a:b]]
-    return eu, ev, node_image.astype(np.int64), node_kp.astype(np.int64), node_xy
+    return eu, ev, node_image, node_kp, node_xy
 
 
 def verify_tracks(views, candidates, keypoints, strict: float, tau: float,

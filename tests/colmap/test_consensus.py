@@ -246,12 +246,36 @@ def _two_view_point(P1, P2, x1, x2):
     ([(0, 1, [[0, 0]], ["x"])], TypeError, "ratio"),
     ([(0, 1, [[0, 0]])], TypeError, "tuple"),
     ([(0, 1, [[0, 0]], [0.5], [True])], TypeError, "tuple"),
-    ([(0, 1, [[0, 99]], [0.5])], ValueError, "beyond"),
+    ([(0, 1, [[0, 99]], [0.5])], ValueError, "keypoint 99 of view 1 is beyond its 5"),
+    ([(0, 1, [[0, 0]], [0.5]), (2, 0, [[1, 0], [7, 2]], [0.5, 0.5])], ValueError, "keypoint 7 of view 2 is beyond"),
 ])
 def test_bad_candidates_are_refused(cands, error, match):
     views, _, kp = _scene(n_views=3, n_points=5)
     with pytest.raises(error, match=match):
         verify_tracks(views, cands, lambda k: kp[k], strict=0.68, tau=2.0)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_observations_are_numbered_as_np_unique(seed):
+    """Property: the compiled dense numbering of the candidates' ends is ``np.unique``'s of the
+    (image, keypoint) keys, with repeated ends, views without candidates and empty input."""
+    from episeg_cv.colmap import _consensus_kernel as kernel
+
+    rng = np.random.default_rng(seed)
+    counts = rng.integers(0, 30, 6)
+    counts[seed % 6] = 0
+    start = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    live = np.flatnonzero(counts)
+    m = int(rng.integers(0, 200)) if seed else 0
+    img_a, img_b = rng.choice(live, m), rng.choice(live, m)
+    pairs = np.column_stack([rng.integers(0, counts[img_a]), rng.integers(0, counts[img_b])]).astype(np.int64)
+    eu, ev, node_image, node_kp = kernel.number_observations(img_a.astype(np.int64), img_b.astype(np.int64),
+                                                             pairs.reshape(-1, 2), start)
+    keys = np.concatenate([start[img_a] + pairs[:, 0], start[img_b] + pairs[:, 1]]).astype(np.int64)
+    uniq, inv = np.unique(keys, return_inverse=True)
+    assert np.array_equal(np.concatenate([eu, ev]), inv) and eu.dtype == np.int64
+    img = np.searchsorted(start, uniq, side="right") - 1
+    assert np.array_equal(node_image, img) and np.array_equal(node_kp, uniq - start[img])
 
 
 @pytest.mark.parametrize("tau", [0.0, -1.0, float("inf"), float("nan"), "2"])
