@@ -276,39 +276,52 @@ def _stable_by_key(items, keys, n_keys):
     return out
 
 
+#: Bits per digit of :func:`_by_ratio`'s radix sort: 11 (2048 counters, in the first-level cache) took 10 ms
+#: on 330k edges, 8 bits 11 ms, 13 bits 12 ms, 16 bits 14 ms (one thread).
+RADIX_BITS = 11
+
+
 @nb.njit(cache=True, nogil=True)
 def _by_ratio(er):
     """Edge indices sorted by ratio, ties in input order: a least-significant-digit radix sort (stable) of
     the ratios' bits, mapped so that their order as unsigned integers is the order of the numbers (the
-    sign bit set for positive ones and zeros, every bit flipped for negative ones). Digits of 16 bits; a
-    digit that is the same for every edge (most of the exponent) is skipped. 5 ms for 330k edges, where
-    numba's stable sort of each component took about 25 ms."""
+    sign bit set for positive ones and zeros, every bit flipped for negative ones). Digits of
+    :data:`RADIX_BITS` bits, the keys carried along with the indices (each pass reads both in order); a
+    digit that is the same for every edge (most of the exponent) is skipped. 10 ms for 330k edges, where
+    numba's stable sort of each component took about 25 ms, NumPy's stable argsort 31 ms, and 16-bit
+    digits read through the permutation 16 ms."""
     m = er.shape[0]
-    keys = (er + 0.0).view(np.uint64)  # (+ 0.0: -0.0 becomes 0.0, equal as numbers)
+    keys = (er + 0.0).view(np.uint64).copy()  # (+ 0.0: -0.0 becomes 0.0, equal as numbers)
     top = np.uint64(1) << np.uint64(63)
     for i in range(m):
         keys[i] = ~keys[i] if keys[i] & top else keys[i] | top
+    spare = np.empty_like(keys)
     order = np.arange(m)
     out = np.empty(m, np.int64)
-    count = np.empty(1 << 16, np.int64)
-    for shift in range(0, 64, 16):
+    n_digits = 1 << RADIX_BITS
+    mask = np.uint64(n_digits - 1)
+    count = np.empty(n_digits, np.int64)
+    for shift in range(0, 64, RADIX_BITS):
         sh = np.uint64(shift)
         count[:] = 0
         for i in range(m):
-            count[np.int64((keys[order[i]] >> sh) & np.uint64(0xFFFF))] += 1
+            count[np.int64((keys[i] >> sh) & mask)] += 1
         if count.max() == m:  # one digit for every edge: this pass would change nothing
             continue
         total = 0
-        for d in range(1 << 16):
+        for d in range(n_digits):
             c = count[d]
             count[d] = total
             total += c
         for i in range(m):
-            k = order[i]
-            d = np.int64((keys[k] >> sh) & np.uint64(0xFFFF))
-            out[count[d]] = k
-            count[d] += 1
+            k = keys[i]
+            d = np.int64((k >> sh) & mask)
+            p = count[d]
+            count[d] = p + 1
+            out[p] = order[i]
+            spare[p] = k
         order, out = out, order
+        keys, spare = spare, keys
     return order
 
 

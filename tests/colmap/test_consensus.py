@@ -625,6 +625,10 @@ def test_ratio_order_is_a_stable_sort():
         rng.shuffle(x)
         np.testing.assert_array_equal(kernel._by_ratio(x), np.argsort(x, kind="stable"))
     assert kernel._by_ratio(np.zeros(0)).shape == (0,)
+    # a collection's size: every digit of the mantissa differs somewhere, and many ties (rounded values)
+    x = np.concatenate([rng.random(60_000), np.round(rng.random(60_000), 3), rng.choice(special, 1000)])
+    rng.shuffle(x)
+    np.testing.assert_array_equal(kernel._by_ratio(x), np.argsort(x, kind="stable"))
 
 
 # -- views whose pose looks off (suspect_views) -----------------------------------------------------------------
