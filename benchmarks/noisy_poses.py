@@ -46,6 +46,8 @@ from pathlib import Path
 
 import numpy as np
 
+from episeg_cv.refinement import rotation_angle_deg
+
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _colmap_sets as sets  # noqa: E402
 import _noisy_poses as noise  # noqa: E402
@@ -130,7 +132,7 @@ def run_set(name, true_views, image_dir, quality_fn, depths, cfg: dict, work: Pa
         s, Q, c = noise.trimmed_similarity(A, B)
         rec.transform(pycolmap.Sim3d(s, pycolmap.Rotation3d(Q), c))
         return {**quality_fn(rec), "given_frame": given_frame, "similarity": {
-            "points": len(A), "scale": s, "rotation_deg": float(np.degrees(noise.rotation_angle(Q))),
+            "points": len(A), "scale": s, "rotation_deg": rotation_angle_deg(Q),
             "translation": float(np.linalg.norm(c))}}
 
     features_db = work / "colmap_features.db"
