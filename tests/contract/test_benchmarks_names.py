@@ -51,7 +51,7 @@ def _helper(name: str):
         sys.path.remove(str(BENCH))
 
 
-def test_the_reader_sees_both_import_forms(tmp_path):
+def test_the_reader_sees_both_import_forms():
     """(hand-made) An attribute of an aliased helper and a name imported from one are both found; names of
     other modules are not."""
     src = ("import numpy as np\nimport _common as c\nfrom _gil import wrap, missing\n"
