@@ -291,7 +291,7 @@ def _by_ratio(er):
     numba's stable sort of each component took about 25 ms, NumPy's stable argsort 31 ms, and 16-bit
     digits read through the permutation 16 ms."""
     m = er.shape[0]
-    keys = (er + 0.0).view(np.uint64).copy()  # (+ 0.0: -0.0 becomes 0.0, equal as numbers)
+    keys = (er + 0.0).view(np.uint64)  # a new array (+ 0.0: -0.0 becomes 0.0, equal as numbers)
     top = np.uint64(1) << np.uint64(63)
     for i in range(m):
         keys[i] = ~keys[i] if keys[i] & top else keys[i] | top
