@@ -14,6 +14,8 @@ import numbers
 import cv2
 import numpy as np
 
+from ._finite_kernels import largest_magnitude
+
 #: Orthonormality error ``|R^T R - I|`` (and ``|det R - 1|``) below which ``R`` is used as given.
 ROTATION_ATOL = 1e-9
 
@@ -282,10 +284,9 @@ def as_descriptor_pair(descriptors1, descriptors2, norm: str, names=("descriptor
         if d.ndim != 2:
             raise ValueError(f"{name} must have shape (N, D), got shape {d.shape}")
         if d.dtype != np.uint8 and d.size:
-            lo, hi = float(d.min()), float(d.max())  # NaN propagates into both; an infinity is one of them
-            if not (np.isfinite(lo) and np.isfinite(hi)):
+            big = largest_magnitude(d)  # NaN if any is NaN, inf if any is infinite (one pass)
+            if not np.isfinite(big):
                 raise ValueError(f"{name} must be finite, got NaN or inf")
-            big = max(abs(lo), abs(hi))
             if d.dtype == np.float64 and big > _FLOAT32_SAFE:
                 raise ValueError(f"{name} must fit in float32 (distances are computed in float32, as cv2 does), "
                                  f"got a value of magnitude {big:.3g}")

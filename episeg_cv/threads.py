@@ -1,10 +1,10 @@
 """How many threads the compiled kernels use: :func:`set_num_threads`, :func:`get_num_threads`.
 
 Like ``cv2.setNumThreads``: one setting for the whole process, every core by
-default. It governs the library's numba kernels (the segments, the candidate
-index, the candidate scan, the padding of the acceptance rule) and the BLAS
-product that scores the padding references (limited through threadpoolctl for
-the length of that product only).
+default. It governs the library's numba kernels (the descriptors' finiteness
+check, the segments, the candidate index, the candidate scan, the padding of
+the acceptance rule) and the BLAS product that scores the padding references
+(limited through threadpoolctl for the length of that product only).
 
 Results do not depend on the thread count: every parallel loop either
 computes items independently, or keeps per-thread minima under a total order

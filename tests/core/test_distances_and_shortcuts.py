@@ -246,6 +246,35 @@ def test_finiteness_check_on_huge_finite_values():
             as_descriptor_pair(np.zeros((3, 4), np.float32), y, "l2")
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("parallel", [False, True])
+def test_largest_magnitude_is_numpys_abs_max(dtype, parallel, monkeypatch):
+    """The one-pass check (sign bit off, integer maximum) against ``np.abs(a).max()``: random signs and
+    magnitudes, signed zeros, subnormals, a strided view, and NaN or inf anywhere, serial and parallel."""
+    from episeg_cv import threads
+    from episeg_cv._finite_kernels import largest_magnitude
+    if parallel:
+        monkeypatch.setattr(threads, "MIN_PARALLEL_ITEMS", 1)
+    rng = np.random.default_rng(3)
+    tiny = np.finfo(dtype).smallest_subnormal
+    for trial in range(40):
+        n, d = int(rng.integers(1, 40)), int(rng.integers(1, 9))
+        a = (rng.standard_normal((n, d)) * 10.0 ** rng.integers(-30, 30, (n, d))).astype(dtype)
+        a.flat[rng.integers(0, a.size)] = rng.choice([0.0, -0.0, tiny, -tiny])
+        if trial % 3 == 0:
+            a = a[:, ::2]  # not contiguous
+        assert largest_magnitude(a) == float(np.abs(a).max())
+        for bad in (np.inf, -np.inf, np.nan):
+            b = a.copy()
+            b.flat[rng.integers(0, b.size)] = bad
+            got = largest_magnitude(b)
+            assert (np.isnan(got) if np.isnan(bad) else got == np.inf), (bad, got)
+        c = a.copy()
+        c.flat[rng.integers(0, c.size)], c.flat[rng.integers(0, c.size)] = np.inf, np.nan
+        assert np.isnan(largest_magnitude(c))  # a NaN wins over an infinity, as in min() and max()
+    assert largest_magnitude(np.array([[-0.0]], dtype)) == 0.0
+
+
 def test_float64_descriptors_beyond_float32_are_refused():
     """Distances are computed in float32 (as cv2 does): 1e308 would silently give no match at all."""
     with pytest.raises(ValueError, match="descriptors1 must fit in float32"):
