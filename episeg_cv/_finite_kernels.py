@@ -14,6 +14,8 @@ import numba as nb
 import numpy as np
 from numba import prange
 
+from .threads import run
+
 __all__ = ["magnitude_bits", "magnitude_bits_parallel", "largest_magnitude"]
 
 #: The sign bit off, per float dtype: (unsigned view, mask).
@@ -53,8 +55,6 @@ def largest_magnitude(arr: np.ndarray) -> float:
     >>> largest_magnitude(np.array([1.0, np.inf, np.nan]))
     nan
     """
-    from .threads import run
-
     unsigned, mask = _MASKS[arr.dtype]
     bits = np.ascontiguousarray(arr).reshape(-1).view(unsigned)
     m = run(magnitude_bits, magnitude_bits_parallel, arr.shape[0] if arr.ndim else 1, bits, mask)
