@@ -172,6 +172,9 @@ def load_views(model, image_dir=None):
             raise ValueError("model must be a non-empty list of View, a model folder or a poses JSON")
         return list(model), None
     path = Path(model)
+    if not path.exists():
+        raise ValueError(f"model {str(path)!r} does not exist (expected a COLMAP model folder, a poses JSON or a "
+                         "Middlebury *_par.txt)")
     if path.is_file() and is_par_file(path):
         if image_dir is None:
             raise ValueError(f"a Middlebury camera file ({path.name}) needs the image folder for the image sizes")

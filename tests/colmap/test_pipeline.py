@@ -487,6 +487,15 @@ def test_model_without_registered_images_is_refused(tmp_path):
         colmap.load_model(tmp_path)
 
 
+@pytest.mark.parametrize("name", ["nope", "nope.txt", "poses.json"])
+def test_missing_model_is_named_as_any_model_kind(tmp_path, name):
+    # a missing *_par.txt or JSON is not called a "model folder"
+    with pytest.raises(ValueError, match=r"model '.*" + name.replace(".", r"\.") + r"' does not exist \(expected a "
+                                         r"COLMAP model folder, a poses JSON or a Middlebury \*_par\.txt\)"):
+        colmap.match_model(tmp_path / name, tmp_path, tmp_path / "x.db")
+    assert not (tmp_path / "x.db").exists()
+
+
 def test_database_path_problems(folder, reference, tmp_path):
     with pytest.raises(ValueError, match="does not exist"):
         colmap.match_model(folder["model"], folder["images"], tmp_path / "nowhere" / "x.db")
