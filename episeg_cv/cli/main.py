@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import sys
 
@@ -56,7 +57,7 @@ def main(argv=None) -> int:
     if verbose and not quiet:
         log.setLevel(logging.INFO)
     try:
-        with terminate_as_interrupt():  # SIGTERM and SIGHUP end the run as Ctrl-C does: cleanly
+        with terminate_as_interrupt(), _compile_notice(quiet):  # SIGTERM, SIGHUP: as Ctrl-C, cleanly
             return int(args.func(args, console) or 0)
     except (UserError, ValueError, TypeError, OSError) as exc:
         # user errors: a missing file, a bad calibration, an unreadable image, bad values
@@ -76,6 +77,17 @@ def main(argv=None) -> int:
     finally:
         log.removeHandler(handler)
         log.setLevel(level)
+
+
+def _compile_notice(quiet: bool):
+    """One line on stderr when a kernel starts compiling (the first run after installing), unless quiet."""
+    if quiet:
+        return contextlib.nullcontext()
+    from ..kernel_cache import on_first_compile
+
+    return on_first_compile(lambda name: print(
+        f"{PROG}: compiling the kernels on their first use (up to a minute, once; later runs load them from "
+        "numba's cache)", file=sys.stderr, flush=True))
 
 
 def _interrupted(exc: KeyboardInterrupt) -> int:

@@ -327,3 +327,25 @@ def test_match_partial_pose_and_featureless_images(tmp_path):
     r = run("match", blank, blank)
     assert r.returncode == 1 and "cannot estimate the geometry from the images: too few matches" in r.stderr
     _check_no_traceback(r)
+
+
+# --- the first run after installing ------------------------------------------------------------
+@pytest.mark.parametrize("quiet", [False, True])
+def test_a_compiling_kernel_is_announced_unless_quiet(tmp_path, monkeypatch, capsys, quiet):
+    import contextlib
+    import importlib
+
+    from episeg_cv import kernel_cache
+    cli_main = importlib.import_module("episeg_cv.cli.main")
+
+    @contextlib.contextmanager
+    def compiling(callback):  # as numba's listener reports a kernel that starts compiling in the block
+        callback("episeg_cv.matching._kernels.knn_scan")
+        yield
+
+    monkeypatch.setattr(kernel_cache, "on_first_compile", compiling)
+    args = ["segments", IMG1, IMG2, "--calib", CALIB, "--random", "2", "--out", str(tmp_path / "s.png")]
+    assert cli_main.main((["-q"] if quiet else []) + args) == 0
+    err = capsys.readouterr().err
+    notice = "episeg: compiling the kernels on their first use (up to a minute, once"
+    assert (notice in err) is not quiet and err.count("compiling the kernels") == (0 if quiet else 1), err
