@@ -2,8 +2,9 @@
 
 The compiled kernels use ``numba.njit(cache=True)``: the first call of each compiles it and writes it
 to numba's cache (``__pycache__`` beside the package, or ``NUMBA_CACHE_DIR``); later processes load it
-from there. Compiling costs 25-55 s per command on one core of this project's 2-core test machine,
-once (``benchmarks/results/first_run.md``); loading costs about a second. A program that wants to say
+from there. Compiling costs 23-29 s for a two-view command and about a minute for ``episeg colmap``,
+on one core of this project's 2-core test machine, once (``benchmarks/results/first_run.md``); later
+runs take 1.4-2.8 s in all. A program that wants to say
 so, as ``episeg`` does, wraps its work in :func:`on_first_compile`.
 """
 
