@@ -4,8 +4,8 @@ The compiled kernels use ``numba.njit(cache=True)``: the first call of each comp
 to numba's cache (``__pycache__`` beside the package, or ``NUMBA_CACHE_DIR``); later processes load it
 from there. Compiling costs 23-29 s for a two-view command and about a minute for ``episeg colmap``,
 on one core of this project's 2-core test machine, once (``benchmarks/results/first_run.md``); later
-runs take 1.4-2.8 s in all. A program that wants to say
-so, as ``episeg`` does, wraps its work in :func:`on_first_compile`.
+runs take 1.4-2.8 s in all. A program that wants to say so, as ``episeg`` does, wraps its work in
+:func:`on_first_compile`.
 """
 
 from __future__ import annotations
@@ -25,13 +25,14 @@ class _FirstCompile(event.Listener):
 
     def on_start(self, ev):
         func = getattr(ev.data.get("dispatcher"), "py_func", None)
-        if func is None or not (func.__module__ or "").startswith(self.package):
+        module = getattr(func, "__module__", None) or ""
+        if func is None or not (module == self.package or module.startswith(self.package + ".")):
             return
         with self.lock:
             if self.called:
                 return
             self.called = True
-        self.callback(f"{func.__module__}.{func.__qualname__}")
+        self.callback(f"{module}.{func.__qualname__}")
 
     def on_end(self, ev):
         pass

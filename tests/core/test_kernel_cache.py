@@ -43,6 +43,8 @@ def test_kernels_of_other_packages_do_not_count():
     seen = []
     with on_first_compile(seen.append):
         assert not_ours(np.int64(2)) == 3
+    with on_first_compile(seen.append, package=__name__[:-1]):  # a prefix of the module's name is another
+        assert not_ours(np.int32(2)) == 3
     assert seen == []
     with on_first_compile(seen.append, package=__name__):
         assert not_ours(2.5) == 3.5  # a new signature: compiled now
