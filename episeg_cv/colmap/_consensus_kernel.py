@@ -385,6 +385,14 @@ def _prepare(node_image, eu, ev, er):
 
 
 @nb.njit(cache=True, nogil=True)
+def _copy(dst, at, src, n):
+    """``dst[at:at + n] = src[:n]`` as a loop: numba compiles a slice assignment with its shape-error
+    formatting, which cost about 3 s of compile time per calling kernel (``benchmarks/first_run.py``)."""
+    for k in range(n):
+        dst[at + k] = src[k]
+
+
+@nb.njit(cache=True, nogil=True)
 def _note(reads, n, cap, queue, tail):
     """``reads[:n]`` with ``queue[:tail]`` appended: the new length, or -1 once they do not fit in ``cap``
     (``cap = 0``: nothing is recorded)."""
@@ -392,7 +400,7 @@ def _note(reads, n, cap, queue, tail):
         return n
     if n + tail > cap:
         return -1
-    reads[n:n + tail] = queue[:tail]
+    _copy(reads, n, queue, tail)
     return n + tail
 
 
@@ -436,7 +444,7 @@ def _round(e0, P, centers, node_image, node_xy, eu, ev, tau, cos_min_angle, max_
             best_count = cnt
             best_score = score
             best_seed = k
-            best_inl[:cnt] = inl[:cnt]
+            _copy(best_inl, 0, inl, cnt)
     if best_seed < 0:
         return 0, 0, n_seeds, n_reads, stamp
     count = best_count
@@ -446,7 +454,7 @@ def _round(e0, P, centers, node_image, node_xy, eu, ev, tau, cos_min_angle, max_
                                 taken, chain, tau, stamp, mark, queue, best_err, best_node, touched, again)
         n_reads = _note(reads, n_reads, cap, queue, tail)
         if cnt >= 2:
-            best_inl[:cnt] = again[:cnt]
+            _copy(best_inl, 0, again, cnt)
             count = cnt
             triangulate_point(P, node_image, node_xy, best_inl, count, X)
     else:

@@ -168,10 +168,10 @@ def match_pair(x1, x2, A, B, norm, root, H, b, Hi, bi, z1, z2, size1, size2, eps
     :data:`~.distances.PAD_ROUND`).
     """
     idx, sc, best = _scan(x1, x2, A, B, norm, H, b, z1[0:1], z1[1:2], size2[0], size2[1], eps, tol, is_line,
-                          bucket_size, 2)
+                          bucket_size, np.int64(2))  # (not literals: one compiled _scan for both calls)
     if cross_check:  # bounds on z1 are not bounds on z2: the reverse pass uses the whole half-line (0, inf)
         back, _, _ = _scan(x2, x1, B, A, norm, Hi, bi, np.zeros(1), np.full(1, np.inf), size1[0], size1[1], eps, tol,
-                           is_line, bucket_size, 1)
+                           is_line, bucket_size, np.int64(1))
         best = np.ascontiguousarray(back[:, 0])
     i, j, r, mutual = _sk.nearest_ratios(idx, sc, best, A, B, norm, root, pad_j, ratio, mutual_rule, True, chunk,
                                          round_to)
@@ -180,5 +180,6 @@ def match_pair(x1, x2, A, B, norm, root, H, b, Hi, bi, z1, z2, size1, size2, eps
     inlier = _sk.reverse_keep(x1, x2, ki, kj, Hi, bi, z2[0:1], z2[1:2], _rect(size1[0], size1[1], tol), eps, tol,
                               is_line)
     pairs = np.empty((ki.shape[0], 2), dtype=np.int64)
-    pairs[:, 0], pairs[:, 1] = ki, kj
+    for m in range(ki.shape[0]):  # (a loop: slice assignments compile numba's shape-error formatting, about 3 s)
+        pairs[m, 0], pairs[m, 1] = ki[m], kj[m]
     return pairs, r[ok], inlier
