@@ -387,7 +387,8 @@ def _prepare(node_image, eu, ev, er):
 @nb.njit(cache=True, nogil=True)
 def _copy(dst, at, src, n):
     """``dst[at:at + n] = src[:n]`` as a loop: numba compiles a slice assignment with its shape-error
-    formatting, which cost about 3 s of compile time per calling kernel (``benchmarks/first_run.py``)."""
+    formatting into each kernel that has one (about 3 s of compile time for ``_round``, timed with
+    numba's compile events)."""
     for k in range(n):
         dst[at + k] = src[k]
 
