@@ -28,7 +28,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._validation import as_array, as_image_size, as_points
-from .geometry import EpipolarGeometry, EpipolarSegments, TwoViewGeometry
+from .geometry import EpipolarGeometry, EpipolarSegments, TwoViewGeometry, _rect
 
 __all__ = ["FundamentalGeometry", "orientation_sign"]
 
@@ -179,8 +179,7 @@ class FundamentalGeometry(EpipolarGeometry):
         nrm = np.hypot(line[:, 0], line[:, 1])
         with np.errstate(divide="ignore", invalid="ignore"):
             line = line / np.where(nrm > 0, nrm, np.nan)[:, None]
-        w, h = self.image_size2
-        rect = (-0.5 - margin, w - 0.5 + margin, -0.5 - margin, h - 0.5 + margin)
+        rect = _rect(self.image_size2, margin)
         args = dict(line=line, infinity_point=seg.infinity_point, epipole=seg.epipole, margin=seg.margin,
                     _a=x1 @ self.infinity_homography.T, _b=np.array(self.epipole_homogeneous), _rect=rect)
         nan = np.full((len(seg), 2), np.nan)

@@ -85,9 +85,11 @@ def _camera_inverse(K: np.ndarray) -> np.ndarray:
                      [0.0, 0.0, 1.0]])
 
 
-def _rect(size: tuple[int, int], margin: float) -> tuple[float, float, float, float]:
+def _rect(size: tuple[int, int], margin: float) -> np.ndarray:
+    """``(4,)`` float64 ``(xmin, xmax, ymin, ymax)``: the image ``size = (w, h)`` grown by ``margin``. An
+    array, as the kernels' own ``_pair_kernel._rect``: a tuple would compile the segment kernel once more."""
     w, h = size
-    return -0.5 - margin, w - 0.5 + margin, -0.5 - margin, h - 0.5 + margin
+    return np.array([-0.5 - margin, w - 0.5 + margin, -0.5 - margin, h - 0.5 + margin])
 
 
 def point_segment_distance(p: np.ndarray, start: np.ndarray, end: np.ndarray) -> np.ndarray:
@@ -140,7 +142,7 @@ class EpipolarSegments:
     margin: float
     _a: np.ndarray  # (N, 3) homogeneous p_inf
     _b: np.ndarray  # (3,) homogeneous epipole
-    _rect: tuple  # (xmin, xmax, ymin, ymax) of the clipping rectangle
+    _rect: np.ndarray  # (4,) (xmin, xmax, ymin, ymax) of the clipping rectangle
 
     def __post_init__(self):
         for f in ("start", "end", "valid", "line", "infinity_point", "epipole", "_a", "_b"):

@@ -513,7 +513,8 @@ def _components(c0, c1, skip, P, centers, node_image, node_xy, eu, ev, er, n_ima
     pair = np.empty(2, np.int64)
     reads = np.empty(0, np.int64)
     taken = np.zeros(node_image.shape[0], np.int64)  # (no overlay: chain -1 never matches)
-    stamp = 0  # (mark is read only for the nodes of the component being processed)
+    stamp = np.int64(0)  # (mark is read only for the nodes of the component being processed; not a literal 0,
+    # which had numba compile _round twice, for the literal and for int64)
     for c in range(c0, c1):
         if skip[c]:
             continue

@@ -83,7 +83,10 @@ def _index(x1, x2, H, b, zmin, zmax, w2, h2, eps, tol, is_line, bucket_size):
     rect = _rect(w2, h2, tol)
     start, end, line = np.empty((n1, 2)), np.empty((n1, 2)), np.empty((n1, 3))
     p_inf, a, valid = np.empty((n1, 2)), np.empty((n1, 3)), np.empty(n1, dtype=np.bool_)
-    _gk._segments(0, n1, x1, H, b, zmin, zmax, rect, eps, start, end, valid, line, p_inf, a)
+    x = np.empty((n1, 2))  # a writable copy, as reverse_keep's and the Python API's points: numba compiles
+    for q in range(n1):  # _segments once per read-only flag (the feature store's arrays are read-only)
+        x[q, 0], x[q, 1] = x1[q, 0], x1[q, 1]
+    _gk._segments(0, n1, x, H, b, zmin, zmax, rect, eps, start, end, valid, line, p_inf, a)
     if is_line:
         P, Q = np.empty((n1, 2)), np.empty((n1, 2))
         _gk._line_clip(0, n1, line, rect, P, Q)

@@ -219,7 +219,7 @@ def nearest_ratios(idx, sc, best, A, B, norm, root, pad_j, ratio, mutual_rule, p
             n += 1
     if pad_j.shape[0] and n:
         padded = np.empty(n, dtype=np.int64)
-        m = 0
+        m, zero = np.int64(0), np.int64(0)  # (not literals: numba compiled the callees for each literal typing)
         for r in range(n):
             keep = True
             if prefilter:
@@ -234,10 +234,10 @@ def nearest_ratios(idx, sc, best, A, B, norm, root, pad_j, ratio, mutual_rule, p
         out = np.empty(m, dtype=np.float32)
         if norm == _kernels.L2SQR:
             bt2, bb = _kernels.padding_operands(B, pad_j)
-            _kernels.padding_l2(A, qi, bt2, bb, pad_j, ex, 0, m, np.empty((chunk, A.shape[1]), np.float32),
+            _kernels.padding_l2(A, qi, bt2, bb, pad_j, ex, zero, m, np.empty((chunk, A.shape[1]), np.float32),
                                 np.empty((chunk, pad_j.shape[0]), np.float32), out, round_to)
         else:
-            _kernels._nearest_rows(0, m, A, B, qi, pad_j, ex, norm, out)
+            _kernels._nearest_rows(zero, m, A, B, qi, pad_j, ex, norm, out)
         for r in range(m):
             s2[padded[r]] = min(s2[padded[r]], out[r])
     ratios = np.empty(n)

@@ -60,7 +60,7 @@ def nearest(inputs, geometry: TwoViewGeometry, search: SearchConfig, rule: Accep
     with threads.blas_limit(1):  # (the padding's products: one thread, as in Distances.nearest_excluding)
         return _sk.nearest(np.ascontiguousarray(inputs.points1), np.ascontiguousarray(inputs.points2), dist.a, dist.b,
                            dist.code, dist.norm == "l2", np.ascontiguousarray(geometry.infinity_homography),
-                           geometry.epipole_homogeneous, zmin, zmax, np.array(_rect(geometry.image_size2, search.tol)),
+                           geometry.epipole_homogeneous, zmin, zmax, _rect(geometry.image_size2, search.tol),
                            CHEIRALITY_EPS, float(search.tol), np.ascontiguousarray(pad_j, dtype=np.int64),
                            float(rule.ratio), bool(rule.mutual or rule.cross_check), bool(prefilter), PAD_CHUNK,
                            PAD_ROUND)
