@@ -98,7 +98,7 @@ def segments(x1, H, b, zmin, zmax, rect, eps, start, end, valid, line, p_inf, a)
     epipole, ``zmin`` / ``zmax`` ``(1,)`` or ``(N,)``, ``rect = (xmin, xmax, ymin, ymax)``, ``eps`` the
     relative cheirality tolerance. The caller allocates the outputs with numpy, whose large arrays get
     transparent huge pages: first-touch page faults of numba's allocations cost as much as the arithmetic."""
-    _segments(0, x1.shape[0], x1, H, b, zmin, zmax, rect, eps, start, end, valid, line, p_inf, a)
+    _segments(np.int64(0), x1.shape[0], x1, H, b, zmin, zmax, rect, eps, start, end, valid, line, p_inf, a)
 
 
 @nb.njit(cache=True, nogil=True, parallel=True)
@@ -140,7 +140,7 @@ def _line_clip(k0, k1, line, rect, start, end):
 @nb.njit(cache=True, nogil=True)
 def line_clip(line, rect, start, end):
     """Fill ``start, end (N, 2)`` with the unit lines ``line (N, 3)`` clipped to ``rect``."""
-    _line_clip(0, line.shape[0], line, rect, start, end)
+    _line_clip(np.int64(0), line.shape[0], line, rect, start, end)
 
 
 @nb.njit(cache=True, nogil=True, parallel=True)

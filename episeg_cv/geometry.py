@@ -150,8 +150,10 @@ class EpipolarSegments:
 
     @cached_property
     def _line_clip(self) -> tuple[np.ndarray, np.ndarray]:
-        # computed on first use: guided matching on the segment never needs it
-        line = np.ascontiguousarray(self.line)
+        # computed on first use: guided matching on the segment never needs it. A writable copy of the
+        # (frozen) lines, as the candidate index passes its own: numba types an array's flags, and a
+        # read-only one compiled _line_clip once more (0.8 s of a first run)
+        line = np.array(self.line, dtype=np.float64, order="C")
         start, end = np.empty((len(line), 2)), np.empty((len(line), 2))
         threads.run(_gk.line_clip, _gk.line_clip_parallel, len(line), line, self._rect, start, end)
         start.flags.writeable = end.flags.writeable = False

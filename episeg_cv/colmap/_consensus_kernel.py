@@ -762,9 +762,9 @@ def consensus(P, centers, node_image, node_xy, eu, ev, er, n_images, tau, cos_mi
     n_comp = comp_node.shape[0] - 1
     alive, dead, mark, group, slot_views, comp_groups, comp_unsupported, bound, rank, skip = _setup(
         node_image.shape[0], eu.shape[0], n_comp)
-    _components(0, n_comp, skip, P, centers, node_image, node_xy, eu, ev, er, n_images, tau, cos_min_angle, max_seeds,
-                neighbourhood, hops, adj_ptr, adj, edge_order, comp_node, comp_edge, alive, dead, mark, group,
-                slot_views, comp_groups, comp_unsupported, bound, rank)
+    _components(np.int64(0), n_comp, skip, P, centers, node_image, node_xy, eu, ev, er, n_images, tau, cos_min_angle,
+                max_seeds, neighbourhood, hops, adj_ptr, adj, edge_order, comp_node, comp_edge, alive, dead, mark,
+                group, slot_views, comp_groups, comp_unsupported, bound, rank)
     return _number_groups(group, slot_views, comp_node, comp_groups, comp_unsupported)
 
 

@@ -37,7 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..matching import guided, small
+from ..matching import fused, guided, small
 from ..matching.auto import clip_tol, strict_rule
 from ..matching.config import AcceptRule, AutoTol, SearchConfig
 from ..matching.distances import Distances
@@ -151,12 +151,20 @@ def collection_band(views, store: FeatureStore, pair_list, search: SearchConfig,
 
 def _confident(task) -> list:
     """``[(sample number, signed distances to their segments)]`` of the confident matches of sampled pairs
-    on the general path (a task for the runner's workers)."""
+    on the general path (a task for the runner's workers, one kernel thread each).
+
+    Each pair is one compiled call (:func:`~episeg_cv.matching.fused.match_pair`, as a collection's
+    large pairs): the matches of :func:`~episeg_cv.matching.guided.match`, the same bits, its reverse
+    test unused. Stage by stage, the band compiled ``knn_scan``, ``bucket_frames`` and ``padding_l2``
+    once more for the feature store's read-only arrays, about 3 s of a first run.
+    """
     out = []
     for k, view1, view2, store, wide, strict in task:
         inputs, g, _, _ = pair_inputs(view1, view2, store)
         inputs = _queries(inputs, spread_subset(inputs.points1, MAX_QUERIES))
-        conf = guided.match(inputs, g, wide, strict)[0]
+        d = inputs.distances
+        conf = fused.match_pair(inputs.points1, d.a, inputs.points2, d.b, d.norm, g, view1.depth_range,
+                                view2.depth_range, wide, strict)[0]
         out.append((k, _residuals(g, inputs.points1[conf[:, 0]], inputs.points2[conf[:, 1]])))
     return out
 
@@ -166,8 +174,11 @@ def _residuals(g, points1: np.ndarray, points2: np.ndarray) -> np.ndarray:
 
 
 def _queries(inputs: guided.MatchInputs, rows: np.ndarray) -> guided.MatchInputs:
-    """The same inputs with only the queries ``rows`` of image 1."""
+    """The same inputs with only the queries ``rows`` of image 1, read-only as the store's arrays (a
+    writable copy would compile the pair kernel once more: numba types an array's flags)."""
     if len(rows) == len(inputs.points1):
         return inputs
     d = inputs.distances
-    return guided.MatchInputs(Distances(d.raw1[rows], d.raw2, d.norm), inputs.points1[rows], inputs.points2)
+    raw1, points1 = d.raw1[rows], inputs.points1[rows]
+    raw1.flags.writeable = points1.flags.writeable = False
+    return guided.MatchInputs(Distances(raw1, d.raw2, d.norm), points1, inputs.points2)

@@ -114,7 +114,7 @@ def _phi(r0, r1, line, q_ok, s, c0, c1, u, v, out):
 def query_phi(line, q_ok, s, c0, c1, u, v):
     """``(len(q_ok),)`` pencil angle of the epipolar line of each query ``q_ok[r]`` (0 where undefined)."""
     out = np.empty(q_ok.shape[0])
-    _phi(0, q_ok.shape[0], line, q_ok, s, c0, c1, u, v, out)
+    _phi(np.int64(0), q_ok.shape[0], line, q_ok, s, c0, c1, u, v, out)
     return out
 
 
@@ -167,7 +167,7 @@ def bucket_frames(q_sorted, bstart, line, P, Q, pencil, c0, c1, span, tol):
     directions, hull = np.empty((n_b, 2)), np.empty((n_b, 2))
     klo, khi = np.empty(q_sorted.shape[0]), np.empty(q_sorted.shape[0])
     for b in range(n_b):
-        _bucket(b, q_sorted, bstart, line, P, Q, pencil, c0, c1, span, tol, directions, klo, khi, hull)
+        _bucket(np.int64(b), q_sorted, bstart, line, P, Q, pencil, c0, c1, span, tol, directions, klo, khi, hull)
     return directions, klo, khi, hull
 
 
@@ -178,7 +178,7 @@ def bucket_frames_parallel(q_sorted, bstart, line, P, Q, pencil, c0, c1, span, t
     directions, hull = np.empty((n_b, 2)), np.empty((n_b, 2))
     klo, khi = np.empty(q_sorted.shape[0]), np.empty(q_sorted.shape[0])
     for b in prange(n_b):
-        _bucket(b, q_sorted, bstart, line, P, Q, pencil, c0, c1, span, tol, directions, klo, khi, hull)
+        _bucket(np.int64(b), q_sorted, bstart, line, P, Q, pencil, c0, c1, span, tol, directions, klo, khi, hull)
     return directions, klo, khi, hull
 
 
@@ -233,7 +233,7 @@ def pencil_intervals(e, u, v, c0, c1, s, tol, y):
     to the epipole. Both are grown slightly, for rounding.
     """
     lo, width = np.empty(y.shape[0]), np.empty(y.shape[0])
-    _intervals(0, y.shape[0], e, u, v, c0, c1, s, tol, y, lo, width)
+    _intervals(np.int64(0), y.shape[0], e, u, v, c0, c1, s, tol, y, lo, width)
     return lo, width
 
 
@@ -381,17 +381,17 @@ def spread_keys(lo, width, edges, y, directions, c0, c1, span, hull):
     n = lo.shape[0]
     first = np.empty(n + 1, dtype=np.int64)
     ranges = np.empty((n, 3), dtype=np.int64)
-    _ranges(0, n, lo, width, edges, _grid(edges), ranges)
+    _ranges(np.int64(0), n, lo, width, edges, _grid(edges), ranges)
     no_i, no_f = np.empty(0, np.int64), np.empty(0)
-    _spread(0, n, ranges, y, directions, c0, c1, span, hull, first, no_i, no_f, True)
+    _spread(np.int64(0), n, ranges, y, directions, c0, c1, span, hull, first, no_i, no_f, True)
     total = _prefix(first[:n])
     first[n] = total
     bucket, key = np.empty(total, np.int64), np.empty(total)
-    _spread(0, n, ranges, y, directions, c0, c1, span, hull, first, bucket, key, False)
+    _spread(np.int64(0), n, ranges, y, directions, c0, c1, span, hull, first, bucket, key, False)
     t_b, key_b, bstart = _by_bucket(first, bucket, key, edges.shape[0] - 1)
     t_sorted, key_sorted = np.empty(total, np.int64), np.empty(total)
     for b in range(edges.shape[0] - 1):
-        _sort_bucket(b, bstart, t_b, key_b, t_sorted, key_sorted)
+        _sort_bucket(np.int64(b), bstart, t_b, key_b, t_sorted, key_sorted)
     return t_sorted, key_sorted, bstart
 
 
@@ -416,7 +416,7 @@ def spread_keys_parallel(lo, width, edges, y, directions, c0, c1, span, hull, bl
     t_b, key_b, bstart = _by_bucket(first, bucket, key, edges.shape[0] - 1)
     t_sorted, key_sorted = np.empty(total, np.int64), np.empty(total)
     for b in prange(edges.shape[0] - 1):
-        _sort_bucket(b, bstart, t_b, key_b, t_sorted, key_sorted)
+        _sort_bucket(np.int64(b), bstart, t_b, key_b, t_sorted, key_sorted)
     return t_sorted, key_sorted, bstart
 
 
@@ -437,7 +437,7 @@ def slice_bounds(key_t, bstart, qb, klo, khi):
     """``(start, stop)`` per query row ``r``: the keys of its bucket ``qb[r]`` in ``[klo[r], khi[r]]``."""
     n = qb.shape[0]
     start, stop = np.empty(n, np.int64), np.empty(n, np.int64)
-    _slices(0, n, key_t, bstart, qb, klo, khi, start, stop)
+    _slices(np.int64(0), n, key_t, bstart, qb, klo, khi, start, stop)
     return start, stop
 
 

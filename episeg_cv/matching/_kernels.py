@@ -218,7 +218,7 @@ def knn_scan(q_sorted, q_start, q_stop, t_sorted, geo, y, is_line, tol, tol2, A,
     """
     n = q_sorted.shape[0]
     m = _longest(q_start, q_stop, 0, n)
-    _scan_rows(0, n, q_sorted, q_start, q_stop, t_sorted, geo, y, is_line, tol, tol2, A, B, norm,
+    _scan_rows(np.int64(0), n, q_sorted, q_start, q_stop, t_sorted, geo, y, is_line, tol, tol2, A, B, norm,
                idx, sc, counts, col_s, col_i, np.empty(m, np.int64), np.empty(m, np.float32))
 
 
@@ -365,7 +365,7 @@ def nearest_excluding(A, B, qi, tj, exclude, norm):
     """``(len(qi),)`` smallest score of query ``qi[r]`` over the keypoints ``tj``, leaving out ``exclude[r]``
     (inf when nothing is left)."""
     out = np.empty(qi.shape[0], dtype=np.float32)
-    _nearest_rows(0, qi.shape[0], A, B, qi, tj, exclude, norm, out)
+    _nearest_rows(np.int64(0), qi.shape[0], A, B, qi, tj, exclude, norm, out)
     return out
 
 

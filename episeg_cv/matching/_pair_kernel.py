@@ -86,10 +86,10 @@ def _index(x1, x2, H, b, zmin, zmax, w2, h2, eps, tol, is_line, bucket_size):
     x = np.empty((n1, 2))  # a writable copy, as reverse_keep's and the Python API's points: numba compiles
     for q in range(n1):  # _segments once per read-only flag (the feature store's arrays are read-only)
         x[q, 0], x[q, 1] = x1[q, 0], x1[q, 1]
-    _gk._segments(0, n1, x, H, b, zmin, zmax, rect, eps, start, end, valid, line, p_inf, a)
+    _gk._segments(np.int64(0), n1, x, H, b, zmin, zmax, rect, eps, start, end, valid, line, p_inf, a)
     if is_line:
         P, Q = np.empty((n1, 2)), np.empty((n1, 2))
-        _gk._line_clip(0, n1, line, rect, P, Q)
+        _gk._line_clip(np.int64(0), n1, line, rect, P, Q)
         ok = np.empty(n1, dtype=np.bool_)
         for q in range(n1):
             ok[q] = np.isfinite(P[q, 0]) and np.isfinite(P[q, 1])
@@ -100,7 +100,7 @@ def _index(x1, x2, H, b, zmin, zmax, w2, h2, eps, tol, is_line, bucket_size):
             if not np.isfinite(line[q, c]):
                 line[q, c] = 0.0
     geo = np.empty((n1, 7))
-    _ik._frames(0, n1, P, Q, line, is_line, geo)
+    _ik._frames(np.int64(0), n1, P, Q, line, is_line, geo)
     q_ok = np.flatnonzero(ok)
     if n2 == 0 or q_ok.shape[0] == 0:
         z = np.zeros(0, dtype=np.int64)

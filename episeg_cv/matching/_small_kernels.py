@@ -143,13 +143,13 @@ def _nearest_sorted(x1, x2, A, B, norm, root, H, b, zmin, zmax, rect, eps, tol, 
     n1, n2 = x1.shape[0], x2.shape[0]
     start, end, line = np.empty((n1, 2)), np.empty((n1, 2)), np.empty((n1, 3))
     p_inf, a, valid = np.empty((n1, 2)), np.empty((n1, 3)), np.empty(n1, dtype=np.bool_)
-    _gk._segments(0, n1, x1, H, b, zmin, zmax, rect, eps, start, end, valid, line, p_inf, a)
+    _gk._segments(np.int64(0), n1, x1, H, b, zmin, zmax, rect, eps, start, end, valid, line, p_inf, a)
     for q in range(n1):
         for c in range(3):
             if not np.isfinite(line[q, c]):
                 line[q, c] = 0.0
     geo = np.empty((n1, 7))
-    _ik._frames(0, n1, start, end, line, False, geo)
+    _ik._frames(np.int64(0), n1, start, end, line, False, geo)
     tol2 = tol * tol * (1 + 1e-9) + 1e-12
     # the slices: keypoints sorted along three axes (x, y, and across the segments' mean direction); each
     # query scans those inside its segment's box along the axis where the box holds fewest
@@ -190,8 +190,8 @@ def _nearest_sorted(x1, x2, A, B, norm, root, H, b, zmin, zmax, rect, eps, tol, 
     buf_p, buf_s = np.empty(longest, np.int64), np.empty(longest, np.float32)
     for ax in range(3):
         m = n_rows[ax]
-        _kernels._scan_rows(0, m, rows[ax, :m], lo[ax, :m], hi[ax, :m], order[ax], geo, ys[ax], False, tol, tol2,
-                            A, B, norm, idx, sc, counts, col_s, col_i, buf_p, buf_s)
+        _kernels._scan_rows(np.int64(0), m, rows[ax, :m], lo[ax, :m], hi[ax, :m], order[ax], geo, ys[ax], False, tol,
+                            tol2, A, B, norm, idx, sc, counts, col_s, col_i, buf_p, buf_s)
     i, j, ratios, mutual = nearest_ratios(idx, sc, col_i, A, B, norm, root, pad_j, ratio, mutual_rule, prefilter,
                                           chunk, round_to)
     return i, j, ratios, mutual, counts
@@ -292,7 +292,7 @@ def reverse_keep(x1, x2, i, j, Hi, bi, zmin, zmax, rect1, eps, tol, is_line):
         y[k, 0], y[k, 1] = x2[j[k], 0], x2[j[k], 1]
     start, end, line = np.empty((m, 2)), np.empty((m, 2)), np.empty((m, 3))
     p_inf, a, valid = np.empty((m, 2)), np.empty((m, 3)), np.empty(m, dtype=np.bool_)
-    _gk._segments(0, m, y, Hi, bi, zmin, zmax, rect1, eps, start, end, valid, line, p_inf, a)
+    _gk._segments(np.int64(0), m, y, Hi, bi, zmin, zmax, rect1, eps, start, end, valid, line, p_inf, a)
     if not is_line:
         return segment_keep(line, start, end, valid, np.arange(m), x1, i, tol)
     keep = np.empty(m, dtype=np.bool_)
@@ -370,7 +370,7 @@ def pairs(X, A, first, img, H, b, Hi, bi, zr, rects, eps, tol, pad, pad_first, n
     leaves room for one per query. Each image is sorted along ``x`` and ``y`` once, for all its pairs.
     """
     IK, IO, IY, IT, IB = _image_buffers(X, first)
-    _sort_images(0, first.shape[0] - 1, X, first, IK, IO, IY, IT, IB)
+    _sort_images(np.int64(0), first.shape[0] - 1, X, first, IK, IO, IY, IT, IB)
     _pair_range(0, img.shape[0], X, A, first, img, H, b, Hi, bi, zr, rects, eps, tol, pad, pad_first, norm, root,
                 loose, mutual_rule, chunk, round_to, out_first, out_i, out_j, out_r, out_in, out_n, IK, IO, IY, IT, IB)
 

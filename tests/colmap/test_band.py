@@ -132,7 +132,7 @@ def test_the_band_uses_a_spread_subset_of_queries(folder, tmp_path, monkeypatch)
 @pytest.mark.parametrize("max_queries", [20, 100])
 def test_small_sample_pairs_in_one_call_give_the_band_of_pair_by_pair(folder, tmp_path, monkeypatch, max_queries):
     """The sampled pairs that are small (:func:`episeg_cv.matching.small.fits`) are matched together by
-    ``small.many``; forcing every one through ``guided.match`` on the index gives the same band."""
+    ``small.many``; forcing every one through the general path (one compiled call a pair) gives the same band."""
     from episeg_cv.colmap import band as band_module
 
     monkeypatch.setattr(band_module, "MAX_QUERIES", max_queries)
@@ -145,3 +145,30 @@ def test_small_sample_pairs_in_one_call_give_the_band_of_pair_by_pair(folder, tm
     one_by_one = colmap.match_model(folder["model"], folder["images"], tmp_path / "b.db", tol="auto",
                                     verify="pairs").band
     assert batched == one_by_one and batched["matches"] > 0
+
+
+@pytest.mark.parametrize("max_queries", [20, 10_000])
+def test_large_sample_pairs_give_the_matches_of_guided_match(folder, tmp_path, monkeypatch, max_queries):
+    """The general path matches each sampled pair in one compiled call (``fused.match_pair``); stage by
+    stage (``guided.match`` from view 1, each view's depth range) gives the same confident matches, so
+    the same count and the same sigma to the bit. 10_000 queries: all of them (the store's read-only
+    arrays, not a copy)."""
+    from episeg_cv.colmap import band as band_module
+    from episeg_cv.matching import guided
+    from episeg_cv.refinement import spread_subset
+
+    def stage_by_stage(task):
+        out = []
+        for k, view1, view2, store, wide, strict in task:
+            inputs, g, _, _ = band_module.pair_inputs(view1, view2, store)
+            inputs = band_module._queries(inputs, spread_subset(inputs.points1, band_module.MAX_QUERIES))
+            conf = guided.match(inputs, g, wide, strict)[0]
+            out.append((k, band_module._residuals(g, inputs.points1[conf[:, 0]], inputs.points2[conf[:, 1]])))
+        return out
+
+    monkeypatch.setattr(band_module, "MAX_QUERIES", max_queries)
+    monkeypatch.setattr(band_module.small, "fits", lambda *a: False)
+    fused = colmap.match_model(folder["model"], folder["images"], tmp_path / "a.db", tol="auto", verify="pairs").band
+    monkeypatch.setattr(band_module, "_confident", stage_by_stage)
+    staged = colmap.match_model(folder["model"], folder["images"], tmp_path / "b.db", tol="auto", verify="pairs").band
+    assert fused == staged and fused["matches"] > 0 and fused["pairs"] > 0
