@@ -422,8 +422,9 @@ def _round(e0, P, centers, node_image, node_xy, eu, ev, tau, cos_min_angle, max_
     stamp += 1
     n_seeds, tail = _window(e0, adj_ptr, adj, eu, ev, rank, alive, taken, chain, dead, hops, neighbourhood, max_seeds,
                             stamp, mark, queue, depth, seeds)
-    n_reads = _note(reads, 0, cap, queue, tail)
-    best_count = 0
+    zero, two = np.int64(0), np.int64(2)  # not literals: numba compiles a callee once per literal typing
+    n_reads = _note(reads, zero, cap, queue, tail)
+    best_count = zero
     best_score = 0.0
     best_seed = -1
     for s in range(n_seeds):
@@ -432,7 +433,7 @@ def _round(e0, P, centers, node_image, node_xy, eu, ev, tau, cos_min_angle, max_
             continue
         pair[0] = eu[k]
         pair[1] = ev[k]
-        if not triangulate_point(P, node_image, node_xy, pair, 2, X):
+        if not triangulate_point(P, node_image, node_xy, pair, two, X):
             bound[k] = 0.0  # (the same two rays every round)
             continue
         stamp += 1
@@ -445,7 +446,7 @@ def _round(e0, P, centers, node_image, node_xy, eu, ev, tau, cos_min_angle, max_
             best_count = cnt
             best_score = score
             best_seed = k
-            _copy(best_inl, 0, inl, cnt)
+            _copy(best_inl, zero, inl, cnt)
     if best_seed < 0:
         return 0, 0, n_seeds, n_reads, stamp
     count = best_count
@@ -455,13 +456,13 @@ def _round(e0, P, centers, node_image, node_xy, eu, ev, tau, cos_min_angle, max_
                                 taken, chain, tau, stamp, mark, queue, best_err, best_node, touched, again)
         n_reads = _note(reads, n_reads, cap, queue, tail)
         if cnt >= 2:
-            _copy(best_inl, 0, again, cnt)
+            _copy(best_inl, zero, again, cnt)
             count = cnt
             triangulate_point(P, node_image, node_xy, best_inl, count, X)
     else:
         pair[0] = eu[best_seed]
         pair[1] = ev[best_seed]
-        triangulate_point(P, node_image, node_xy, pair, 2, X)
+        triangulate_point(P, node_image, node_xy, pair, two, X)
     views = distinct_views(node_image, centers, X, best_inl, count, cos_min_angle, dirs)
     return count, views, n_seeds, n_reads, stamp
 
