@@ -406,6 +406,13 @@ def _note(reads, n, cap, queue, tail):
 
 
 @nb.njit(cache=True, nogil=True)
+def _plain():
+    """``(-1, True, 0)`` typed int64, bool and int64, not as literals: numba compiles a callee once per literal
+    typing, so :func:`_round`'s serial calls pass these to share the compile of the speculative ones."""
+    return np.int64(-1), np.bool_(True), np.int64(0)
+
+
+@nb.njit(cache=True, nogil=True)
 def _round(e0, P, centers, node_image, node_xy, eu, ev, tau, cos_min_angle, max_seeds, neighbourhood, hops, adj_ptr,
            adj, rank, alive, taken, chain, dead, bound, write_bound, mark, stamp, best_err, best_node, touched, inl,
            best_inl, again, dirs, seeds, queue, depth, X, pair, reads, cap):
@@ -514,8 +521,8 @@ def _components(c0, c1, skip, P, centers, node_image, node_xy, eu, ev, er, n_ima
     pair = np.empty(2, np.int64)
     reads = np.empty(0, np.int64)
     taken = np.zeros(node_image.shape[0], np.int64)  # (no overlay: chain -1 never matches)
-    stamp = np.int64(0)  # (mark is read only for the nodes of the component being processed; not a literal 0,
-    # which had numba compile _round twice, for the literal and for int64)
+    stamp = np.int64(0)  # (mark is read only for the nodes of the component being processed)
+    no_chain, yes, zero = _plain()
     for c in range(c0, c1):
         if skip[c]:
             continue
@@ -532,8 +539,8 @@ def _components(c0, c1, skip, P, centers, node_image, node_xy, eu, ev, er, n_ima
                 break
             count, views, n_seeds, _, stamp = _round(
                 edge_order[first], P, centers, node_image, node_xy, eu, ev, tau, cos_min_angle, max_seeds,
-                neighbourhood, hops, adj_ptr, adj, rank, alive, taken, -1, dead, bound, True, mark, stamp, best_err,
-                best_node, touched, inl, best_inl, again, dirs, seeds, queue, depth, X, pair, reads, 0)
+                neighbourhood, hops, adj_ptr, adj, rank, alive, taken, no_chain, dead, bound, yes, mark, stamp,
+                best_err, best_node, touched, inl, best_inl, again, dirs, seeds, queue, depth, X, pair, reads, zero)
             if count == 0:
                 for s in range(n_seeds):
                     dead[seeds[s]] = True
@@ -618,6 +625,7 @@ def _big_component(c, slots, rounds_per_slot, read_cap, max_chain, P, centers, n
     seeds = np.empty((batch, max_seeds), np.int64)
     reads = np.empty((batch, read_cap), np.int64)
     written = np.zeros(n, np.int64)  # the batch that took an observation (or set aside an edge at it)
+    no_chain, yes, zero = _plain()
     first = comp_edge[c]
     n_groups = 0
     n_unsupported = 0
@@ -695,9 +703,9 @@ def _big_component(c, slots, rounds_per_slot, read_cap, max_chain, P, centers, n
             while _live(e0, eu, ev, alive, dead):
                 count, n_view, n_seed, _, stamps[0] = _round(
                     e0, P, centers, node_image, node_xy, eu, ev, tau, cos_min_angle, max_seeds, neighbourhood, hops,
-                    adj_ptr, adj, rank, alive, taken[0], -1, dead, bound, True, mark[0], stamps[0], best_err[0],
-                    best_node[0], touched[0], inl[0], nodes[b, 0], again[0], dirs[0], seeds[b], queue[0], depth[0],
-                    X[0], pair[0], reads[b], 0)
+                    adj_ptr, adj, rank, alive, taken[0], no_chain, dead, bound, yes, mark[0], stamps[0],
+                    best_err[0], best_node[0], touched[0], inl[0], nodes[b, 0], again[0], dirs[0], seeds[b], queue[0],
+                    depth[0], X[0], pair[0], reads[b], zero)
                 if count == 0:
                     for s in range(n_seed):
                         k = seeds[b, s]
