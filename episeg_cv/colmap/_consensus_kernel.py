@@ -406,13 +406,6 @@ def _note(reads, n, cap, queue, tail):
 
 
 @nb.njit(cache=True, nogil=True)
-def _plain():
-    """``(-1, True, 0)`` typed int64, bool and int64, not as literals: numba compiles a callee once per literal
-    typing, so :func:`_round`'s serial calls pass these to share the compile of the speculative ones."""
-    return np.int64(-1), np.bool_(True), np.int64(0)
-
-
-@nb.njit(cache=True, nogil=True)
 def _round(e0, P, centers, node_image, node_xy, eu, ev, tau, cos_min_angle, max_seeds, neighbourhood, hops, adj_ptr,
            adj, rank, alive, taken, chain, dead, bound, write_bound, mark, stamp, best_err, best_node, touched, inl,
            best_inl, again, dirs, seeds, queue, depth, X, pair, reads, cap):
@@ -522,7 +515,8 @@ def _components(c0, c1, skip, P, centers, node_image, node_xy, eu, ev, er, n_ima
     reads = np.empty(0, np.int64)
     taken = np.zeros(node_image.shape[0], np.int64)  # (no overlay: chain -1 never matches)
     stamp = np.int64(0)  # (mark is read only for the nodes of the component being processed)
-    no_chain, yes, zero = _plain()
+    # (not literals: numba compiles _round once per literal typing; these share the speculative calls' compile)
+    no_chain, yes, zero = np.int64(-1), np.bool_(True), np.int64(0)
     for c in range(c0, c1):
         if skip[c]:
             continue
@@ -625,7 +619,7 @@ def _big_component(c, slots, rounds_per_slot, read_cap, max_chain, P, centers, n
     seeds = np.empty((batch, max_seeds), np.int64)
     reads = np.empty((batch, read_cap), np.int64)
     written = np.zeros(n, np.int64)  # the batch that took an observation (or set aside an edge at it)
-    no_chain, yes, zero = _plain()
+    no_chain, yes, zero = np.int64(-1), np.bool_(True), np.int64(0)  # (as in _components)
     first = comp_edge[c]
     n_groups = 0
     n_unsupported = 0
