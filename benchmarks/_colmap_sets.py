@@ -35,7 +35,7 @@ DINO_PAR = "dinoSR_par.txt"
 #: Triangulation options: COLMAP's defaults ("3v": a point needs three views) and with two-view tracks kept.
 TRIANGULATIONS = {"3v": {}, "2v": {"ignore_two_view_tracks": False}}
 #: Runs whose median is the matching time of a method (one run is noise on a shared 2-core machine).
-TIME_REPEATS = 3
+TIME_REPEATS = 5
 
 
 def _pycolmap():
@@ -253,15 +253,17 @@ def run_set(name, model, image_dir, views, quality, work: Path, max_features: in
     work.mkdir(parents=True, exist_ok=True)
     features_db = work / "colmap_features.db"
     seconds_extract = pycolmap_extract(views, image_dir, features_db, max_features)
-    out = {}
+    out, again = {}, {}  # again[m](): one more timed matching of method m, its seconds
     for m in METHODS:
-        db = work / f"{len(out)}.db"
+        k = len(out)
+        db = work / f"{k}.db"
         shutil.copyfile(features_db, db)
         t0 = time.perf_counter()
         entry = {}
         if m == PYCOLMAP:
             entry["seconds_matching"] = pycolmap_exhaustive(db)
             entry["seconds_features"] = seconds_extract
+            again[m] = lambda k=k: pycolmap_exhaustive(_fresh_copy(features_db, work / f"{k}_again.db"))
         elif m == GUIDED:
             entry["seconds_matching"] = pycolmap_guided(views, features_db, db)
             entry["seconds_features"] = seconds_extract
@@ -274,39 +276,46 @@ def run_set(name, model, image_dir, views, quality, work: Path, max_features: in
             given = ({} if tol is None else {"tol": tol})
             verify = verify if loose is None else colmap.TrackConsensus(complete=True) if loose == "complete" else \
                 colmap.TrackConsensus(loose=loose)
-            report = colmap.match_model(model, image_dir, db, features=features, verify=verify, **given,
-                                        workers=workers,
-                                        cache_dir=work / f"{len(out)}.features", log=notes.append)
+            options = dict(features=features, verify=verify, **given, workers=workers,
+                           cache_dir=work / f"{k}.features")
+            report = colmap.match_model(model, image_dir, db, **options, log=notes.append)
             entry.update(seconds_matching=report.seconds_matching, seconds_verify=report.seconds_verify,
                          seconds_features=report.seconds_features if features != "database" else seconds_extract,
                          seconds_features_read=report.seconds_features if features == "database" else None,
                          pairs_per_second=report.pairs_per_second, runner=report.runner, verify=report.verify, band=report.band,
                          inliers=report.n_inliers, warnings=notes)
+            copy = features_db if features == "database" else None
+            again[m] = lambda k=k, copy=copy, options=options: colmap.match_model(
+                model, image_dir, _fresh_copy(copy, work / f"{k}_again.db"), **options, overwrite=True,
+                log=lambda msg: None).seconds_matching
         entry["seconds_wall"] = time.perf_counter() - t0
-        if m != GUIDED:  # the matching time: the median of TIME_REPEATS runs (the first one included)
-            times = [entry["seconds_matching"]]
-            for r in range(TIME_REPEATS - 1):
-                again = work / f"{len(out)}_again.db"
-                again.unlink(missing_ok=True)
-                if m == PYCOLMAP or features == "database":
-                    shutil.copyfile(features_db, again)
-                if m == PYCOLMAP:
-                    times.append(pycolmap_exhaustive(again))
-                else:
-                    times.append(colmap.match_model(model, image_dir, again, features=features, verify=verify,
-                                                    **given, workers=workers, cache_dir=work / f"{len(out)}.features",
-                                                    overwrite=True, log=lambda msg: None).seconds_matching)
-            entry["seconds_matching_runs"] = times
-            entry["seconds_matching"] = float(np.median(times))
-        entry["quality"] = _quality_all(db, model, image_dir, work / f"{len(out)}_tri", quality)
-        entry["seconds_total"] = entry["seconds_features"] + entry["seconds_matching"] + \
-            entry["quality"]["3v"]["seconds_triangulation"]
+        entry["quality"] = _quality_all(db, model, image_dir, work / f"{k}_tri", quality)
         out[m] = entry
         q = entry["quality"]
         _progress(f"{name}, {m}: 3v {q['3v']['accurate']}/{q['3v']['points']} accurate, 2v "
-                  f"{q['2v']['accurate']}/{q['2v']['points']}; matching {entry['seconds_matching']:.2f} s")
+                  f"{q['2v']['accurate']}/{q['2v']['points']}; matching {entry['seconds_matching']:.2f} s (first run)")
+    # the matching time: the median of TIME_REPEATS runs (the first one included), the repeats interleaved
+    # round by round, so that a change of the shared machine's load falls on every method alike
+    runs = {m: [out[m]["seconds_matching"]] for m in again}
+    for _ in range(TIME_REPEATS - 1):
+        for m, run in again.items():
+            runs[m].append(run())
+    for m, entry in out.items():
+        if m in runs:
+            entry["seconds_matching_runs"] = runs[m]
+            entry["seconds_matching"] = float(np.median(runs[m]))
+        entry["seconds_total"] = entry["seconds_features"] + entry["seconds_matching"] + \
+            entry["quality"]["3v"]["seconds_triangulation"]
     return {"methods": out, "n_views": len(views), "n_pairs": len(views) * (len(views) - 1) // 2,
             "seconds_extract_pycolmap": seconds_extract}
+
+
+def _fresh_copy(features_db, path: Path) -> Path:
+    """``path`` made anew: a copy of ``features_db`` (None: no file, the run makes it)."""
+    path.unlink(missing_ok=True)
+    if features_db is not None:
+        shutil.copyfile(features_db, path)
+    return path
 
 
 def run_parallel(model, image_dir, work: Path, repeats: int, dask: bool) -> dict:
@@ -429,8 +438,9 @@ def markdown(res: dict) -> list:
              "default.")
     L.append("- **Times**: matching = `match_exhaustive` / the `match_guided` loop / `MatchReport.seconds_matching` "
              "(matching, consensus and database writes; ours on all cores: `workers` = the core count, threads). "
-             f"Matching times are the median of {TIME_REPEATS} runs (`match_guided`: one run; every run in the "
-             "JSON); counts and quality are from the first run (deterministic except pycolmap's RANSAC). "
+             f"Matching times are the median of {TIME_REPEATS} runs: the first, then the others interleaved round "
+             "by round over the methods of a collection, so that a change of the shared machine's load falls on "
+             "every method alike (`match_guided`: one run; every run in the JSON); counts and quality are from the first run (deterministic except pycolmap's RANSAC). "
              "Total = features + matching + 3v triangulation.\n")
     for name, s in res["sets"].items():
         M = s["methods"]
