@@ -42,7 +42,7 @@ from ..matching.auto import clip_tol, strict_rule
 from ..matching.config import AcceptRule, AutoTol, SearchConfig
 from ..matching.distances import Distances
 from ..refinement import robust_sigma, segment_residuals, spread_subset
-from .job import pair_inputs, pinhole_count
+from .job import image_rows, pair_inputs, pinhole_count
 from .store import FeatureStore
 
 __all__ = ["CollectionBand", "collection_band", "SAMPLE_PAIRS", "TAU_MIN", "MAX_QUERIES"]
@@ -120,25 +120,32 @@ def collection_band(views, store: FeatureStore, pair_list, search: SearchConfig,
     """
     strict = strict_rule(options, rule)
     largest = max((v.image_size for v in views), key=lambda s: s[0] * s[1])
-    small_ones, large_ones = [], []  # (sample number, inputs, geometry, wide search, view 2's depth range)
+    small_ones, large_ones = [], []  # (sample number, queries, keypoints, geometry, wide search, view 2's range)
+    counts, rows, queries = {}, {}, {}  # per image: keypoints, (points, scoring rows), those of its spread queries
     for k, (i, j) in enumerate(sample_pairs(pair_list, sample)):
         wide = search.replace(tol=options.first_band(views[j].image_size), depth_range=views[i].depth_range)
+        for v in (i, j):
+            if v not in counts:
+                counts[v] = pinhole_count(views[v], store)
         # (a View's geometry has no covariance)
-        if small.fits(min(pinhole_count(views[i], store), MAX_QUERIES), pinhole_count(views[j], store), wide, strict):
-            inputs, g, _, _ = pair_inputs(views[i], views[j], store)
-            small_ones.append((k, _queries(inputs, spread_subset(inputs.points1, MAX_QUERIES)), g, wide,
-                               views[j].depth_range))
+        if small.fits(min(counts[i], MAX_QUERIES), counts[j], wide, strict):
+            for v in (i, j):
+                if v not in rows:
+                    rows[v] = image_rows(views[v], store)[:2]
+            if i not in queries:  # (shared by its pairs: many() passes an image's arrays once)
+                q = spread_subset(rows[i][0], MAX_QUERIES)
+                queries[i] = rows[i] if len(q) == len(rows[i][0]) else (rows[i][0][q], rows[i][1][q])
+            small_ones.append((k, queries[i], rows[j], views[i].geometry_to(views[j]), wide, views[j].depth_range))
         else:  # its inputs are made in its task, on the runner's threads
             large_ones.append((k, views[i], views[j], store, wide, strict))
     size = per_task(len(large_ones)) if per_task is not None and large_ones else max(1, len(large_ones))
     tasks = [large_ones[k:k + size] for k in range(0, len(large_ones), size)]
     found = {k: r for task in imap(_confident, tasks) for k, r in task}
     # the small pairs in one call on every core, the same matches as guided.match (the reverse test unused)
-    pairs = small.many([small.SmallPair(x.points1, x.distances.a, x.points2, x.distances.b, g, s.tol, s.depth_range,
-                                        d2) for _, x, g, s, d2 in small_ones], strict, strict.ratio, store.norm,
-                       lambda n2, n_pad: guided.padding_references(0, n2, n_pad))
-    for (k, x, g, _, _), (qi, kj, _, _) in zip(small_ones, pairs):
-        found[k] = _residuals(g, x.points1[qi], x.points2[kj])
+    pairs = small.many([small.SmallPair(*x1, *x2, g, s.tol, s.depth_range, d2) for _, x1, x2, g, s, d2 in small_ones],
+                       strict, strict.ratio, store.norm, lambda n2, n_pad: guided.padding_references(0, n2, n_pad))
+    for (k, x1, x2, g, _, _), (qi, kj, _, _) in zip(small_ones, pairs):
+        found[k] = _residuals(g, x1[0][qi], x2[0][kj])
     residuals = [found[k] for k in sorted(found) if len(found[k])]
     used = len(residuals)
     r = np.concatenate(residuals) if residuals else np.zeros(0)

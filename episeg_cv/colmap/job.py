@@ -12,7 +12,7 @@ from ..matching.config import AcceptRule, SearchConfig
 from ..matching.distances import Distances
 from ..matching.filtering import keep_mask
 from .store import FeatureStore
-from .views import View
+from .views import View, is_bounded
 
 __all__ = ["PairJob", "PairResult", "match_pair", "match_pairs", "pair_inputs", "pinhole_count"]
 
@@ -138,7 +138,7 @@ def _stages(job: PairJob, inputs, g):
 def _fused(job: PairJob, g, image1: tuple, image2: tuple) -> PairResult:
     """:func:`match_pair` in one compiled call on this thread, without the GIL
     (:func:`episeg_cv.matching.fused.match_pair`): the same result as :func:`_stages` gives.
-    ``image1`` / ``image2``: ``(points, scoring rows, stored indices or None)`` (:func:`_image_rows`)."""
+    ``image1`` / ``image2``: ``(points, scoring rows, stored indices or None)`` (:func:`image_rows`)."""
     (q1, a1, idx1), (q2, a2, idx2) = image1, image2
     pairs, ratios, keep = fused.match_pair(q1, a1, q2, a2, job.store.norm, g, job.view1.depth_range,
                                            job.view2.depth_range, job.search, job.rule, job.loose)
@@ -151,7 +151,7 @@ def _result(job: PairJob, g, q1, pairs, keep, ratios, idx1, idx2) -> PairResult:
     lengths = (0.0, 0.0, 0.0)
     if len(sample):
         full = g.segments(sample)
-        ranged = g.segments(sample, job.view1.depth_range)
+        ranged = g.segments(sample, job.view1.depth_range) if is_bounded(job.view1.depth_range) else full
         lengths = tuple(float(np.sum(x)) for x in (full.line_length, full.length, ranged.length))
     if idx1 is not None and len(pairs):
         pairs[:, 0] = idx1[pairs[:, 0]]
@@ -183,7 +183,7 @@ def match_pairs(jobs: list) -> list:
     for job in jobs:
         for v in (job.view1, job.view2):
             if v.name not in images:
-                images[v.name] = _image_rows(v, first.store)
+                images[v.name] = image_rows(v, first.store)
     small_ones = [small.fits(len(images[j.view1.name][0]), len(images[j.view2.name][0]), j.search, j.rule)
                   for j in jobs]
     batch = _match_batch([j for j, s in zip(jobs, small_ones) if s], images)
@@ -193,14 +193,14 @@ def match_pairs(jobs: list) -> list:
 
 
 def _match_one(job: PairJob, images: dict) -> PairResult:
-    """:func:`match_pair` of a large pair whose images' rows are loaded (:func:`_image_rows`)."""
+    """:func:`match_pair` of a large pair whose images' rows are loaded (:func:`image_rows`)."""
     image1, image2 = images[job.view1.name], images[job.view2.name]
     if _fusable(job, len(image1[0]), len(image2[0])):
         return _fused(job, job.view1.geometry_to(job.view2), image1, image2)
     return match_pair(job)
 
 
-def _image_rows(view: View, store: FeatureStore):
+def image_rows(view: View, store: FeatureStore):
     """``(points, scoring rows, stored indices or None)`` of an image's keypoints with a pinhole position,
     as :func:`pair_inputs` keeps them."""
     q, d, idx = _pinhole_rows(view, store)
