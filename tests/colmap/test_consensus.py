@@ -255,6 +255,35 @@ def test_bad_candidates_are_refused(cands, error, match):
         verify_tracks(views, cands, lambda k: kp[k], strict=0.68, tau=2.0)
 
 
+@pytest.mark.parametrize("bad, match", [
+    ((np.array([[0, 0], [1, 1]], np.int64), np.array([0.5, np.nan])), r"candidates\[1\] ratio must not be NaN"),
+    ((np.array([[0, 0], [1, -3]], np.int64), np.array([0.5, 0.5])), r"candidates\[1\] pairs .* got -3"),
+    ((np.array([[0, 0], [1, 1]], np.int64), np.array([0.5])), r"candidates\[1\] ratio must have shape"),
+    ((np.array([[0, 0, 0]], np.int64), np.array([0.5])), r"candidates\[1\] pairs must have shape"),
+])
+def test_bad_candidate_arrays_are_refused_by_index(bad, match):
+    """Arrays (as the pipeline passes them) are checked once, concatenated: the error still names the
+    candidate; a wrong shape or ratio length takes the one-by-one checks."""
+    views, _, kp = _scene(n_views=3, n_points=5)
+    good = (0, 1, np.array([[0, 0], [2, 2]], np.uint32), np.array([0.5, 0.6]))
+    cands = [good, (1, 2, *bad), good]
+    with pytest.raises(ValueError, match=match):
+        verify_tracks(views, cands, lambda k: kp[k], strict=0.68, tau=2.0)
+
+
+def test_candidate_arrays_and_lists_give_the_same_result():
+    """uint32 / float32 arrays (the pipeline's) and plain lists are the same candidates."""
+    views, _, kp = _scene(n_views=4, n_points=30)
+    rng = np.random.default_rng(3)
+    lists = [(i, j, [[p, p] for p in range(30)], rng.uniform(0.1, 0.9, 30).tolist())
+             for i in range(4) for j in range(i + 1, 4)]
+    arrays = [(np.int64(i), j, np.array(p, np.uint32), np.array(r, np.float32).astype(np.float64)) for i, j, p, r in lists]
+    a = verify_tracks(views, lists, lambda k: kp[k], strict=0.68, tau=2.0)
+    b = verify_tracks(views, arrays, lambda k: kp[k], strict=0.68, tau=2.0)
+    assert len(a[0]) == len(b[0]) == len(lists)
+    assert all(np.array_equal(x, y) for x, y in zip(a[0], b[0])) and a[1] == b[1]
+
+
 @pytest.mark.parametrize("seed", range(4))
 def test_observations_are_numbered_as_np_unique(seed):
     """Property: the compiled dense numbering of the candidates' ends is ``np.unique``'s of the
