@@ -252,7 +252,7 @@ def _candidates(candidates, n_views: int):
     bad = np.isnan(ratio)
     if bad.any():
         raise ValueError(f"candidates[{int(np.searchsorted(last, np.argmax(bad), 'right'))}] ratio must not be NaN")
-    bad = pairs.min(axis=1) < 0 if len(pairs) else bad
+    bad = pairs.min(axis=1) < 0
     if bad.any():
         k = int(np.argmax(bad))
         raise ValueError(f"candidates[{int(np.searchsorted(last, k, 'right'))}] pairs must be keypoint indices >= 0, "

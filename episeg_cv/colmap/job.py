@@ -14,7 +14,7 @@ from ..matching.filtering import keep_mask
 from .store import FeatureStore
 from .views import View, is_bounded
 
-__all__ = ["PairJob", "PairResult", "match_pair", "match_pairs", "pair_inputs", "pinhole_count"]
+__all__ = ["PairJob", "PairResult", "image_rows", "match_pair", "match_pairs", "pair_inputs", "pinhole_count"]
 
 
 @dataclass(frozen=True)
