@@ -440,7 +440,8 @@ def markdown(res: dict) -> list:
              "(matching, consensus and database writes; ours on all cores: `workers` = the core count, threads). "
              f"Matching times are the median of {TIME_REPEATS} runs: the first, then the others interleaved round "
              "by round over the methods of a collection, so that a change of the shared machine's load falls on "
-             "every method alike (`match_guided`: one run; every run in the JSON); counts and quality are from the first run (deterministic except pycolmap's RANSAC). "
+             "every method alike (`match_guided`: one run; every run in the JSON); counts and quality are from "
+             "the first run (deterministic except pycolmap's RANSAC). "
              "Total = features + matching + 3v triangulation.\n")
     for name, s in res["sets"].items():
         M = s["methods"]

@@ -272,12 +272,13 @@ def test_bad_candidate_arrays_are_refused_by_index(bad, match):
 
 
 def test_candidate_arrays_and_lists_give_the_same_result():
-    """uint32 / float32 arrays (the pipeline's) and plain lists are the same candidates."""
+    """uint32 pairs and float32 ratios (arrays, taken as they are) and plain lists of the same values (checked
+    one by one) are the same candidates."""
     views, _, kp = _scene(n_views=4, n_points=30)
     rng = np.random.default_rng(3)
-    lists = [(i, j, [[p, p] for p in range(30)], rng.uniform(0.1, 0.9, 30).tolist())
-             for i in range(4) for j in range(i + 1, 4)]
-    arrays = [(np.int64(i), j, np.array(p, np.uint32), np.array(r, np.float32).astype(np.float64)) for i, j, p, r in lists]
+    arrays = [(np.int64(i), j, np.repeat(np.arange(30, dtype=np.uint32)[:, None], 2, axis=1),
+               rng.uniform(0.1, 0.9, 30).astype(np.float32)) for i in range(4) for j in range(i + 1, 4)]
+    lists = [(int(i), j, p.tolist(), r.tolist()) for i, j, p, r in arrays]
     a = verify_tracks(views, lists, lambda k: kp[k], strict=0.68, tau=2.0)
     b = verify_tracks(views, arrays, lambda k: kp[k], strict=0.68, tau=2.0)
     assert len(a[0]) == len(b[0]) == len(lists)
