@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..geometry import _camera_inverse, _skew
 from ..interrupts import interrupts_deferred
 from .store import FeatureStore
 from .views import View, require_pycolmap
@@ -299,15 +300,23 @@ def write_pairs(db, items) -> None:
     an interrupted run keeps whole pairs only, and a transaction costs about 70 us (half of writing a
     pair of 250 keypoints, dinoSparseRing), so the track consensus writes its pairs in blocks."""
     pycolmap = require_pycolmap()
+    calibrated = pycolmap.TwoViewGeometryConfiguration.CALIBRATED
+    normalise = {}  # image id -> K^-1 from COLMAP's pixels, once per image of the block
     rows = []
     for v1, v2, matches, inliers, replace in items:
         v1, v2, matches, inliers = _oriented(v1, v2, matches, inliers)
-        g = v1.geometry_to(v2)
+        n1, n2 = (normalise.get(v.image_id) for v in (v1, v2))
+        if n1 is None:
+            n1 = normalise[v1.image_id] = _camera_inverse(v1.K) @ _TO_COLMAP_INV
+        if n2 is None:
+            n2 = normalise[v2.image_id] = _camera_inverse(v2.K) @ _TO_COLMAP_INV
+        R, t = v1.pose_to(v2)
+        E = _skew(t) @ R  # as TwoViewGeometry.essential_matrix, without making the geometry
         tvg = pycolmap.TwoViewGeometry()
-        tvg.config = pycolmap.TwoViewGeometryConfiguration.CALIBRATED
-        tvg.E = g.essential_matrix
-        tvg.F = _TO_COLMAP_INV.T @ g.fundamental_matrix @ _TO_COLMAP_INV  # in COLMAP's pixels (centre at +0.5)
-        tvg.cam2_from_cam1 = pycolmap.Rigid3d(pycolmap.Rotation3d(g.R), g.t)
+        tvg.config = calibrated
+        tvg.E = E
+        tvg.F = n2.T @ E @ n1  # F = K2^-T E K1^-1, in COLMAP's pixels (centre at +0.5)
+        tvg.cam2_from_cam1 = pycolmap.Rigid3d(pycolmap.Rotation3d(R), t)
         tvg.inlier_matches = np.ascontiguousarray(inliers, dtype=np.uint32)
         rows.append((v1.image_id, v2.image_id, np.ascontiguousarray(matches, dtype=np.uint32), tvg, replace))
     with interrupts_deferred(), pycolmap.DatabaseTransaction(db):

@@ -111,8 +111,14 @@ class View:
         checking again what each view checked when it was made (a collection asks for
         every pair, some twice).
         """
+        R, t = self.pose_to(other)
+        return TwoViewGeometry.from_checked(self.K, other.K, R, t, self.image_size, other.image_size)
+
+    def pose_to(self, other: "View") -> tuple:
+        """``(R, t)`` from this camera to ``other``'s, ``X_other = R X_this + t``: ``(3, 3)`` and ``(3,)``
+        float64, the pose of :meth:`geometry_to`."""
         R = other.R @ self.R.T  # a product of two rotations: a rotation, to rounding
-        return TwoViewGeometry.from_checked(self.K, other.K, R, other.t - R @ self.t, self.image_size, other.image_size)
+        return R, other.t - R @ self.t
 
     @property
     def center(self) -> np.ndarray:

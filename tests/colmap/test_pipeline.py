@@ -98,6 +98,11 @@ def test_database_is_written(folder, reference, collection):
         E = tvg.E / np.linalg.norm(tvg.E)
         np.testing.assert_allclose(E, g.essential_matrix / np.linalg.norm(g.essential_matrix), atol=1e-9)
         np.testing.assert_allclose(tvg.cam2_from_cam1.rotation.matrix(), g.R, atol=1e-9)
+        np.testing.assert_allclose(tvg.cam2_from_cam1.translation, g.t, atol=1e-9)
+        # F in COLMAP's pixels: x_colmap = x + 0.5, so F_colmap = T^-T F T^-1 with T the shift by +0.5
+        shift = np.array([[1.0, 0.0, -0.5], [0.0, 1.0, -0.5], [0.0, 0.0, 1.0]])
+        F = shift.T @ g.fundamental_matrix @ shift
+        np.testing.assert_allclose(tvg.F / np.linalg.norm(tvg.F), F / np.linalg.norm(F), atol=1e-9)
     finally:
         db.close()
 
