@@ -203,7 +203,8 @@ def _resolve_depth(views, rec, depth_range, warn):
         if rec is None:
             if not any(is_bounded(v.depth_range) for v in views):
                 warn("warning: depth_range 'auto' needs a COLMAP model with 3D points (or depth_range in the "
-                     "poses JSON); using (0, inf)")
+                     "poses JSON); using (0, inf). depth_range='none' (--depth-range none) says so without this "
+                     "warning; (zmin, zmax) (--depth-range ZMIN ZMAX) bounds every image")
             return views
         out = auto_depth_ranges(views, rec)
         unseen = [v.name for v in out if not is_bounded(v.depth_range)]

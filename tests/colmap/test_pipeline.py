@@ -566,6 +566,18 @@ def test_exhaustive_pairing_warns_for_large_collections(folder, tmp_path, monkey
     assert any("exhaustive matching of 4 images" in n for n in notes)
 
 
+def test_auto_depth_range_without_points_warns_and_says_how_to_choose(folder, tmp_path):
+    """A poses JSON has no 3D points: 'auto' falls back to (0, inf) and says which settings choose that (or
+    bounds) without the warning; depth_range='none' gives no warning."""
+    notes = []
+    colmap.match_model(folder["poses"], folder["images"], tmp_path / "a.db", log=notes.append)
+    warned = [n for n in notes if "depth_range 'auto' needs" in n]
+    assert len(warned) == 1 and "--depth-range none" in warned[0] and "ZMIN ZMAX" in warned[0]
+    notes.clear()
+    colmap.match_model(folder["poses"], folder["images"], tmp_path / "b.db", depth_range="none", log=notes.append)
+    assert not any("depth_range" in n for n in notes)
+
+
 def test_neighbors_option_matches_fewer_pairs(folder, tmp_path):
     report = colmap.match_model(folder["model"], folder["images"], tmp_path / "n.db", neighbors=1)
     assert 2 <= report.n_pairs < 6
