@@ -45,7 +45,7 @@ import numpy as np
 
 from .interrupts import interrupt_in
 
-__all__ = ["set_num_threads", "get_num_threads", "limit_this_thread", "limited", "use_parallel", "call_parallel",
+__all__ = ["set_num_threads", "get_num_threads", "available_cores", "limit_this_thread", "limited", "use_parallel", "call_parallel",
            "run", "blas_limit", "Scratch", "blocks", "MIN_PARALLEL_ITEMS", "BLOCKS_PER_THREAD"]
 
 #: Below this many items (rows, points, keypoints) a kernel runs its serial variant: forking threads
@@ -147,6 +147,23 @@ def get_num_threads() -> int:
     n = _numba_threads() if _requested is None else _requested
     limit = getattr(_this_thread, "limit", None)
     return n if limit is None else min(n, limit)
+
+
+def available_cores() -> int:
+    """The cores this process may run on (its CPU affinity), at most numba's thread count: the default
+    number of workers of a collection (:func:`episeg_cv.colmap.match_model`) and of compiling processes
+    (:func:`episeg_cv.kernel_cache.compile_kernels`).
+
+    Examples
+    --------
+    >>> available_cores() >= 1
+    True
+    """
+    try:
+        n = len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        n = os.cpu_count() or 1
+    return max(1, min(n, numba.config.NUMBA_NUM_THREADS))
 
 
 def limit_this_thread(n: int | None) -> None:

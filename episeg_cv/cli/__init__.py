@@ -20,6 +20,9 @@ Subcommands (one module each, :mod:`.main` assembles the parser)
 ``episeg synthetic DIR [--views N]``
     Render a posed synthetic collection (images, COLMAP model, poses JSON)
     to try ``episeg colmap`` on.
+``episeg compile [--processes N]``
+    Compile every kernel of the commands into numba's cache now, in several
+    processes at once (:func:`episeg_cv.kernel_cache.compile_kernels`).
 
 Exit codes: 0 success, 1 bad data (missing or unreadable file, bad
 calibration), 2 usage errors. Errors print one line on stderr, no traceback.

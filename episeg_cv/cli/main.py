@@ -10,11 +10,12 @@ import sys
 from .. import __version__
 from ..interrupts import Terminated, interrupt_in, terminate_as_interrupt
 from . import bench, colmap, demo, match, segments, synthetic
+from . import compile as compile_command  # (not to hide the builtin compile here)
 from .args import Formatter, add_verbosity
 from .console import PROG, Console, UserError, one_line
 
 #: The commands, in the order ``episeg --help`` lists them.
-COMMANDS = (demo, match, segments, bench, colmap, synthetic)
+COMMANDS = (demo, match, segments, bench, colmap, synthetic, compile_command)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -87,7 +88,7 @@ def _compile_notice(quiet: bool):
 
     return on_first_compile(lambda name: print(
         f"{PROG}: compiling the kernels on their first use (up to a minute, once; later runs load them from "
-        "numba's cache)", file=sys.stderr, flush=True))
+        f"numba's cache; '{PROG} compile' compiles them all ahead, on every core)", file=sys.stderr, flush=True))
 
 
 def _interrupted(exc: KeyboardInterrupt) -> int:

@@ -30,9 +30,7 @@ import concurrent.futures as cf
 import logging
 import os
 
-import numba
-
-from ..threads import limit_this_thread, limited
+from ..threads import available_cores, limit_this_thread, limited
 from .worker import single_thread
 
 __all__ = ["Runner", "CONNECT_TIMEOUT", "available_cores"]
@@ -48,21 +46,6 @@ TASKS_PER_WORKER = 4
 PROCESS_CHUNK, THREAD_CHUNK = 64, 32
 #: Bounds on the pairs of one Dask task.
 DASK_CHUNK_MIN, DASK_CHUNK_MAX = 8, 64
-
-def available_cores() -> int:
-    """The cores this process may run on (its CPU affinity), at most numba's thread count: the default ``workers``.
-
-    Examples
-    --------
-    >>> available_cores() >= 1
-    True
-    """
-    try:
-        n = len(os.sched_getaffinity(0))
-    except AttributeError:  # not Linux
-        n = os.cpu_count() or 1
-    return max(1, min(n, numba.config.NUMBA_NUM_THREADS))
-
 
 def _run_in_worker(fn, item):
     single_thread()

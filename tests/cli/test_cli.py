@@ -330,6 +330,30 @@ def test_match_partial_pose_and_featureless_images(tmp_path):
 
 
 # --- the first run after installing ------------------------------------------------------------
+@pytest.mark.parametrize("skipped", [[], ["episeg_cv.x:gone: AttributeError"]])
+def test_compile_command_reports_what_it_compiled(monkeypatch, capsys, skipped):
+    import importlib
+
+    from episeg_cv import kernel_cache
+    cli_main = importlib.import_module("episeg_cv.cli.main")
+    calls = []
+
+    def fake(processes=None):  # compile_kernels itself is tested in tests/core/test_kernel_cache.py
+        calls.append(processes)
+        return {"processes": processes or 2, "kernels": 25, "signatures": 31, "skipped": skipped, "seconds": 12.34}
+
+    monkeypatch.setattr(kernel_cache, "compile_kernels", fake)
+    assert cli_main.main(["compile", "--processes", "3"]) == 0
+    out = capsys.readouterr().out
+    assert calls == [3] and "compiled or loaded 25 kernels (31 signatures) in 12.3 s on 3 process(es)" in out
+    assert ("1 kernel signature(s) skipped" in out) is bool(skipped)
+
+
+def test_compile_command_refuses_a_bad_process_count():
+    r = run("compile", "--processes", "0")
+    assert r.returncode == 2 and "argument --processes: expected a positive integer, got '0'" in r.stderr
+
+
 @pytest.mark.parametrize("quiet", [False, True])
 def test_a_compiling_kernel_is_announced_unless_quiet(tmp_path, monkeypatch, capsys, quiet):
     import contextlib
@@ -348,4 +372,5 @@ def test_a_compiling_kernel_is_announced_unless_quiet(tmp_path, monkeypatch, cap
     assert cli_main.main((["-q"] if quiet else []) + args) == 0
     err = capsys.readouterr().err
     notice = "episeg: compiling the kernels on their first use (up to a minute, once"
+    assert (("'episeg compile' compiles them all ahead, on every core" in err) is not quiet), err
     assert (notice in err) is not quiet and err.count("compiling the kernels") == (0 if quiet else 1), err
