@@ -214,16 +214,21 @@ def markdown(res: dict) -> str:
         L.append("| all, compile included (s) | " + " | ".join(
             f"{a['compile_s'] + sum(a['commands'].values()):.1f}" for a in ahead.values()) + " |")
         rec = res["recorded"]
-        est = ", ".join(f"{n}: {lpt_makespan(rec['seconds'], n):.1f} s" for n in (1, 2, 4, 8, 16))
-        L += ["", f"Against {sum(seq.values()):.1f} s for the commands' first runs in order (the table above). "
-              f"The list holds {rec['kernels']} kernels; compiled one after the other in the recording process "
-              f"they took {sum(rec['seconds']):.1f} s, the longest {max(rec['seconds']):.1f} s "
-              f"(`{rec['longest']}`, with its callees). **What to expect on more cores** (a model, not a "
-              f"measurement): dealing the recorded times out as `episeg compile` does gives a longest share of "
-              f"{est} processes. No share can be shorter than the longest kernel, so beyond a few cores that kernel "
-              "sets the time. The measured runs take longer than the model, because each process also compiles "
-              "the callees its kernels share with another process's, unless that one has cached them first, and "
-              "starts Python and numba; the measured column against the model's says by how much.", ""]
+        model = {n: lpt_makespan(rec["seconds"], n) for n in (1, 2, 4, 8, 16)}
+        measured = "; ".join(f"{n} process(es): {a['compile_s']:.1f} s measured, {lpt_makespan(rec['seconds'], int(n)):.1f} s "
+                             "in the model" for n, a in ahead.items())
+        L += ["", f"Against {sum(seq.values()):.1f} s for the commands' first runs in order (the table above). The "
+              f"list holds {rec['kernels']} kernels; compiled one after the other in the recording process they took "
+              f"{sum(rec['seconds']):.1f} s, the longest {max(rec['seconds']):.1f} s (`{rec['longest']}`, with its "
+              "callees). Compiling all of them takes longer than one command's first run compiles for itself, so on "
+              "few cores `episeg compile` pays when several commands will run (or to make an install warm "
+              "before it is used, as a Docker image or a Dask worker's machine).", "",
+              "**What to expect on more cores** (a model, not a measurement): the recorded times dealt out as "
+              "`episeg compile` deals them give a longest share of "
+              + ", ".join(f"{t:.1f} s on {n}" for n, t in model.items()) + " processes. No share is shorter than "
+              "the longest kernel, so from a few cores on that kernel sets the time. The runs take longer than the "
+              f"model ({measured}): each process starts Python and numba, and compiles the callees its kernels share "
+              "with another process's kernels unless that process has cached them first.", ""]
     L += ["The cache is keyed by the source files: reinstalling the same version keeps it, editing a kernel's "
           "module recompiles that module's kernels.", ""]
     return "\n".join(L)
