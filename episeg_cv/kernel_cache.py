@@ -20,7 +20,6 @@ from __future__ import annotations
 import contextlib
 import importlib
 import json
-import os
 import subprocess
 import sys
 import threading
@@ -157,19 +156,24 @@ def compile_kernels(processes: int | None = None, functions=None, signatures=SIG
         load[k] += listed[f]["seconds"]
     t0 = time.perf_counter()
     procs = [subprocess.Popen([sys.executable, "-m", __name__, str(signatures), *share], stdout=subprocess.PIPE,
-                              stderr=subprocess.PIPE, text=True, env=dict(os.environ))
-             for share in shares if share]
+                              stderr=subprocess.PIPE, text=True) for share in shares if share]
     out = {"processes": len(procs), "kernels": 0, "signatures": 0, "skipped": []}
     errors = []
-    for proc in procs:
-        stdout, stderr = proc.communicate()
-        if proc.returncode != 0:
-            errors.append(stderr.strip().splitlines()[-1] if stderr.strip() else f"exit code {proc.returncode}")
-            continue
-        done = json.loads(stdout.strip().splitlines()[-1])
-        out["kernels"] += done["kernels"]
-        out["signatures"] += done["signatures"]
-        out["skipped"] += done["skipped"]
+    try:
+        for proc in procs:
+            stdout, stderr = proc.communicate()
+            if proc.returncode != 0:
+                errors.append(stderr.strip().splitlines()[-1] if stderr.strip() else f"exit code {proc.returncode}")
+                continue
+            done = json.loads(stdout.strip().splitlines()[-1])
+            out["kernels"] += done["kernels"]
+            out["signatures"] += done["signatures"]
+            out["skipped"] += done["skipped"]
+    finally:  # interrupted (Ctrl-C, SIGTERM through the CLI): no process outlives the call
+        for proc in procs:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
     if errors:
         raise RuntimeError(f"compiling the kernels failed in {len(errors)} of {len(procs)} processes: {errors[0]}")
     out["seconds"] = time.perf_counter() - t0

@@ -175,3 +175,12 @@ def test_on_one_core_the_parallel_twins_are_left_out(tmp_path, monkeypatch):
 def test_bad_arguments(kwargs, error, match):
     with pytest.raises(error, match=match):
         compile_kernels(**kwargs)
+
+
+def test_a_failing_process_is_an_error_with_its_message(tmp_path, monkeypatch):
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "cache"))
+    # importing the CLI's __main__ runs the command line: the process exits with argparse's usage error
+    path = _listing(tmp_path, {"episeg_cv.cli.__main__:main": {"seconds": 1.0, "parallel": False,
+                                                               "signatures": [["int64"]]}})
+    with pytest.raises(RuntimeError, match=r"compiling the kernels failed in 1 of 1 processes: .*error"):
+        compile_kernels(1, signatures=path)
