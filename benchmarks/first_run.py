@@ -163,12 +163,12 @@ def run_ahead(cmds: dict, work: Path, processes: int) -> dict:
 
 
 def lpt_makespan(seconds: list, processes: int) -> float:
-    """The longest share when ``seconds`` are dealt out longest first to the least loaded of ``processes``
-    (as :func:`episeg_cv.kernel_cache.compile_kernels` deals the kernels)."""
-    load = [0.0] * processes
-    for t in sorted(seconds, reverse=True):
-        load[load.index(min(load))] += t
-    return max(load)
+    """The longest share when ``seconds`` are dealt out to ``processes`` as
+    :func:`episeg_cv.kernel_cache.compile_kernels` deals the kernels (:func:`~episeg_cv.kernel_cache.deal`)."""
+    from episeg_cv.kernel_cache import deal
+
+    shares = deal(dict(enumerate(seconds)), processes)
+    return max(sum(seconds[k] for k in share) for share in shares)
 
 
 def markdown(res: dict) -> str:

@@ -28,7 +28,7 @@ from pathlib import Path
 
 from numba.core import event
 
-__all__ = ["on_first_compile", "compile_kernels", "SIGNATURES"]
+__all__ = ["on_first_compile", "compile_kernels", "deal", "SIGNATURES"]
 
 #: The kernels the ``episeg`` commands compile, with their argument types and compile times (JSON),
 #: recorded by ``python benchmarks/first_run.py --record``.
@@ -122,9 +122,12 @@ def compile_kernels(processes: int | None = None, functions=None, signatures=SIG
 
     Examples
     --------
-    >>> out = compile_kernels(1, functions=["episeg_cv._finite_kernels:magnitude_bits"])  # doctest: +SKIP
-    >>> out["kernels"], out["skipped"]  # doctest: +SKIP
-    (1, [])
+    ``compile_kernels()`` compiles every kernel, one process per core (``episeg compile``). With no
+    kernel to compile, no process starts:
+
+    >>> out = compile_kernels(functions=[])
+    >>> out["processes"], out["kernels"], out["skipped"]
+    (0, 0, [])
     """
     import numba
 
@@ -149,11 +152,7 @@ def compile_kernels(processes: int | None = None, functions=None, signatures=SIG
         names = [f for f in names if not listed[f]["parallel"]]
     if processes is None:
         processes = available_cores()
-    shares, load = [[] for _ in range(processes)], [0.0] * processes
-    for f in sorted(names, key=lambda f: -listed[f]["seconds"]):  # longest first, to the least loaded
-        k = load.index(min(load))
-        shares[k].append(f)
-        load[k] += listed[f]["seconds"]
+    shares = deal({f: listed[f]["seconds"] for f in names}, processes)
     t0 = time.perf_counter()
     procs = [subprocess.Popen([sys.executable, "-m", __name__, str(signatures), *share], stdout=subprocess.PIPE,
                               stderr=subprocess.PIPE, text=True) for share in shares if share]
@@ -178,6 +177,21 @@ def compile_kernels(processes: int | None = None, functions=None, signatures=SIG
         raise RuntimeError(f"compiling the kernels failed in {len(errors)} of {len(procs)} processes: {errors[0]}")
     out["seconds"] = time.perf_counter() - t0
     return out
+
+
+def deal(seconds: dict, processes: int) -> list:
+    """``processes`` lists of the keys of ``seconds`` (kernel -> its compile time): the longest first, each to
+    the list with the least time so far (longest processing time first, within 4/3 of the best split).
+
+    >>> deal({"a": 5.0, "b": 3.0, "c": 2.0, "d": 1.0}, 2)
+    [['a', 'd'], ['b', 'c']]
+    """
+    shares, load = [[] for _ in range(processes)], [0.0] * processes
+    for f in sorted(seconds, key=lambda f: -seconds[f]):
+        k = load.index(min(load))
+        shares[k].append(f)
+        load[k] += seconds[f]
+    return shares
 
 
 def _argument_type(text: str):

@@ -45,8 +45,8 @@ import numpy as np
 
 from .interrupts import interrupt_in
 
-__all__ = ["set_num_threads", "get_num_threads", "available_cores", "limit_this_thread", "limited", "use_parallel", "call_parallel",
-           "run", "blas_limit", "Scratch", "blocks", "MIN_PARALLEL_ITEMS", "BLOCKS_PER_THREAD"]
+__all__ = ["set_num_threads", "get_num_threads", "available_cores", "limit_this_thread", "limited", "use_parallel",
+           "call_parallel", "run", "blas_limit", "Scratch", "blocks", "MIN_PARALLEL_ITEMS", "BLOCKS_PER_THREAD"]
 
 #: Below this many items (rows, points, keypoints) a kernel runs its serial variant: forking threads
 #: costs more than it saves (a few microseconds on an idle machine, milliseconds on an oversubscribed one).

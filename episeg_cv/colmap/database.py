@@ -301,15 +301,17 @@ def write_pairs(db, items) -> None:
     pair of 250 keypoints, dinoSparseRing), so the track consensus writes its pairs in blocks."""
     pycolmap = require_pycolmap()
     calibrated = pycolmap.TwoViewGeometryConfiguration.CALIBRATED
-    normalise = {}  # image id -> K^-1 from COLMAP's pixels, once per image of the block
+    normalisers = {}  # image id -> K^-1 from COLMAP's pixels, once per image of the block
+
+    def normaliser(v):
+        if v.image_id not in normalisers:
+            normalisers[v.image_id] = _camera_inverse(v.K) @ _TO_COLMAP_INV
+        return normalisers[v.image_id]
+
     rows = []
     for v1, v2, matches, inliers, replace in items:
         v1, v2, matches, inliers = _oriented(v1, v2, matches, inliers)
-        n1, n2 = (normalise.get(v.image_id) for v in (v1, v2))
-        if n1 is None:
-            n1 = normalise[v1.image_id] = _camera_inverse(v1.K) @ _TO_COLMAP_INV
-        if n2 is None:
-            n2 = normalise[v2.image_id] = _camera_inverse(v2.K) @ _TO_COLMAP_INV
+        n1, n2 = normaliser(v1), normaliser(v2)
         R, t = v1.pose_to(v2)
         E = _skew(t) @ R  # as TwoViewGeometry.essential_matrix, without making the geometry
         tvg = pycolmap.TwoViewGeometry()
