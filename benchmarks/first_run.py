@@ -138,9 +138,9 @@ def run_one(make_cmd, work: Path, warm_runs: int) -> dict:
             "cache_mib": size / 2**20, "cache_files": sum(1 for f in cache.rglob("*.nbc"))}
 
 
-def run_sequence(cmds: dict, work: Path) -> dict:
-    """Every command once, in order, sharing one cache that is empty at the start: a fresh install."""
-    cache = Path(tempfile.mkdtemp(prefix="numba_seq_", dir=work))
+def run_sequence(cmds: dict, work: Path, cache: Path | None = None) -> dict:
+    """Every command once, in order, sharing one cache (default: a new, empty one: a fresh install)."""
+    cache = Path(tempfile.mkdtemp(prefix="numba_seq_", dir=work)) if cache is None else cache
     out = {}
     for k, (name, make) in enumerate(cmds.items()):
         folder = work / f"seq_{k}"
@@ -151,15 +151,10 @@ def run_sequence(cmds: dict, work: Path) -> dict:
 
 
 def run_ahead(cmds: dict, work: Path, processes: int) -> dict:
-    """``episeg compile --processes N`` on an empty cache, then every command once, in order, on that cache."""
+    """``episeg compile --processes N`` on an empty cache, then :func:`run_sequence` on that cache."""
     cache = Path(tempfile.mkdtemp(prefix=f"numba_ahead{processes}_", dir=work))
-    out = {"compile_s": timed(episeg("compile", "--processes", processes), cache), "commands": {}}
-    for k, (name, make) in enumerate(cmds.items()):
-        folder = work / f"ahead{processes}_{k}"
-        folder.mkdir()
-        out["commands"][name] = timed(make(folder), cache)
-        shutil.rmtree(folder)
-    return out
+    return {"compile_s": timed(episeg("compile", "--processes", processes), cache),
+            "commands": run_sequence(cmds, work, cache)}
 
 
 def lpt_makespan(seconds: list, processes: int) -> float:

@@ -26,6 +26,7 @@ import threading
 import time
 from pathlib import Path
 
+import numba
 from numba.core import event
 
 __all__ = ["on_first_compile", "compile_kernels", "deal", "SIGNATURES"]
@@ -129,8 +130,6 @@ def compile_kernels(processes: int | None = None, functions=None, signatures=SIG
     >>> out["processes"], out["kernels"], out["skipped"]
     (0, 0, [])
     """
-    import numba
-
     from .threads import available_cores
 
     if processes is not None and (isinstance(processes, bool) or not isinstance(processes, int)):
