@@ -433,8 +433,9 @@ def markdown(res: dict) -> list:
              "`verify=\"pairs\"` (ratio 0.68 per pair); track consensus = `verify=\"tracks\"` (the default), whose "
              "edges are every mutual candidate (`TrackConsensus.loose = 1`, the default; the previous default "
              "took those below ratio 0.9). tol auto = `tol=\"auto\"` (the default for collections): one band "
-             "for the collection from the confident matches of up to 16 pairs around the given poses "
-             "(`episeg_cv.colmap.band`; the band found is in the JSON); tol 2 = the fixed 2 px, the previous "
+             "for the collection from the confident matches, around the given poses, of up to 16 pairs of "
+             "cameras that look alike, until every image is in one (`episeg_cv.colmap.band.band_pairs`; the "
+             "band found is in the JSON); tol 2 = the fixed 2 px, the previous "
              "default.")
     L.append("- **Times**: matching = `match_exhaustive` / the `match_guided` loop / `MatchReport.seconds_matching` "
              "(matching, consensus and database writes; ours on all cores: `workers` = the core count, threads). "

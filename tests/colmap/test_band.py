@@ -11,7 +11,7 @@ pycolmap = pytest.importorskip("pycolmap")
 
 from episeg_cv import AutoTol, SearchConfig, colmap, scenes  # noqa: E402
 from episeg_cv.colmap import TrackConsensus  # noqa: E402
-from episeg_cv.colmap.band import TAU_MIN, sample_pairs  # noqa: E402
+from episeg_cv.colmap.band import TAU_MIN, band_pairs, query_rows, sample_pairs  # noqa: E402
 
 pycolmap.logging.minloglevel = 2
 
@@ -44,7 +44,10 @@ def test_exact_poses_give_the_fixed_band_and_a_tighter_consensus(folder, tmp_pat
     ref = colmap.match_model(m, im, tmp_path / "ref.db", tol=2.0, verify="pairs")
     auto = colmap.match_model(m, im, tmp_path / "auto.db", tol="auto", verify="pairs")
     b = auto.band
-    assert b["tol"] == 2.0 and b["sigma"] < 0.5 and b["matches"] >= 100 and b["pairs"] == 6 and not b["fallback"]
+    views, _ = colmap.load_model(m)
+    sampled = band_pairs(views, [(i, j) for i in range(4) for j in range(i + 1, 4)])
+    assert b["tol"] == 2.0 and b["sigma"] < 0.5 and b["matches"] >= 40 and not b["fallback"]
+    assert b["pairs"] == len(sampled) and 2 <= len(sampled) <= 3
     assert b["tau"] == TAU_MIN and ref.band == {}
     _same(read(tmp_path / "auto.db"), read(tmp_path / "ref.db"))  # the pair rule: the band alone
     assert "band (tol auto): 2.00 px from" in auto.summary() and "consensus within" not in auto.summary()
@@ -118,18 +121,18 @@ def test_cli_tol_auto(folder, tmp_path):
     assert r.returncode == 2 and "--tol" in r.stderr and "'auto'" in r.stderr
 
 
-def test_the_band_uses_a_spread_subset_of_queries(folder, tmp_path, monkeypatch):
+def test_the_band_uses_a_subset_of_queries(folder, tmp_path, monkeypatch):
     """At most MAX_QUERIES queries a pair: the wide pass on every keypoint cost more than the matching."""
     from episeg_cv.colmap import band as band_module
 
     full = colmap.match_model(folder["model"], folder["images"], tmp_path / "a.db", tol="auto", verify="pairs").band
-    monkeypatch.setattr(band_module, "MAX_QUERIES", 20)
+    monkeypatch.setattr(band_module, "MAX_QUERIES", 120)
     few = colmap.match_model(folder["model"], folder["images"], tmp_path / "b.db", tol="auto", verify="pairs").band
-    assert few["matches"] <= 20 * few["pairs"] < full["matches"]
+    assert few["matches"] <= 120 * few["pairs"] and few["matches"] < full["matches"]
     assert few["tol"] == full["tol"] == 2.0 and abs(few["sigma"] - full["sigma"]) < 0.2
 
 
-@pytest.mark.parametrize("max_queries", [20, 100])
+@pytest.mark.parametrize("max_queries", [90, 120])
 def test_small_sample_pairs_in_one_call_give_the_band_of_pair_by_pair(folder, tmp_path, monkeypatch, max_queries):
     """The sampled pairs that are small (:func:`episeg_cv.matching.small.fits`) are matched together by
     ``small.many``; forcing every one through the general path (one compiled call a pair) gives the same band."""
@@ -147,7 +150,7 @@ def test_small_sample_pairs_in_one_call_give_the_band_of_pair_by_pair(folder, tm
     assert batched == one_by_one and batched["matches"] > 0
 
 
-@pytest.mark.parametrize("max_queries", [20, 10_000])
+@pytest.mark.parametrize("max_queries", [120, 10_000])
 def test_large_sample_pairs_give_the_matches_of_guided_match(folder, tmp_path, monkeypatch, max_queries):
     """The general path matches each sampled pair in one compiled call (``fused.match_pair``); stage by
     stage (``guided.match`` from view 1, each view's depth range) gives the same confident matches, so
@@ -155,13 +158,12 @@ def test_large_sample_pairs_give_the_matches_of_guided_match(folder, tmp_path, m
     arrays, not a copy)."""
     from episeg_cv.colmap import band as band_module
     from episeg_cv.matching import guided
-    from episeg_cv.refinement import spread_subset
 
     def stage_by_stage(task):
         out = []
         for k, view1, view2, store, wide, strict in task:
             inputs, g, _, _ = band_module.pair_inputs(view1, view2, store)
-            inputs = band_module._queries(inputs, spread_subset(inputs.points1, band_module.MAX_QUERIES))
+            inputs = band_module._queries(inputs, query_rows(len(inputs.points1), band_module.MAX_QUERIES))
             conf = guided.match(inputs, g, wide, strict)[0]
             out.append((k, band_module._residuals(g, inputs.points1[conf[:, 0]], inputs.points2[conf[:, 1]])))
         return out
@@ -172,3 +174,77 @@ def test_large_sample_pairs_give_the_matches_of_guided_match(folder, tmp_path, m
     monkeypatch.setattr(band_module, "_confident", stage_by_stage)
     staged = colmap.match_model(folder["model"], folder["images"], tmp_path / "b.db", tol="auto", verify="pairs").band
     assert fused == staged and fused["matches"] > 0 and fused["pairs"] > 0
+
+
+def _look(center, direction, name="v.png", k=1):
+    """A View at ``center`` looking along ``direction`` (world-to-camera ``X_cam = R X + t``)."""
+    z = np.asarray(direction, float) / np.linalg.norm(direction)
+    up = np.array([0.0, 1.0, 0.0]) if abs(z[1]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    x = np.cross(up, z)
+    x /= np.linalg.norm(x)
+    R = np.stack([x, np.cross(z, x), z])
+    return colmap.View(name, k, 1, np.diag([500.0, 500.0, 1.0]), R, -R @ np.asarray(center, float), (640, 480))
+
+
+def _all_pairs(n):
+    return [(i, j) for i in range(n) for j in range(i + 1, n)]
+
+
+@pytest.mark.parametrize("n", [3, 6, 16, 40])
+def test_band_pairs_on_a_ring_are_neighbours_covering_every_image(n):
+    """Cameras on a ring looking at its centre: every pair taken is two neighbours (the smallest angle and
+    baseline), every image is in one, and each pair brings an image not taken before (a greedy edge
+    cover), at most ``n - 1`` pairs; beyond SAMPLE_PAIRS images, SAMPLE_PAIRS pairs."""
+    views = []
+    for k in range(n):
+        a = 2 * np.pi * k / n
+        c = 3 * np.array([np.cos(a), 0.0, np.sin(a)])
+        views.append(_look(c, -c, f"{k}.png", k + 1))
+    pairs = _all_pairs(n)
+    got = band_pairs(views, pairs)
+    assert got == sorted(got) and len(set(got)) == len(got) and all(p in pairs for p in got)
+    assert all((j - i) % n in (1, n - 1) for i, j in got)
+    covered = {v for p in got for v in p}
+    if n <= 2 * 16:
+        assert covered == set(range(n)) and -(-n // 2) <= len(got) <= n - 1
+    else:
+        assert len(got) == 16
+    assert band_pairs(views, pairs, n=1) == [got[0]] or len(band_pairs(views, pairs, n=1)) == 1
+
+
+def test_band_pairs_on_an_aerial_grid_take_neighbours_not_a_far_camera_looking_alike():
+    """A nadir grid (every camera looks down, so their angles differ by noise only): the baseline's rank
+    keeps the pairs to neighbours. Two cameras at one place looking opposite ways (a rig) are not a pair
+    while a camera nearby looks the same way."""
+    rng = np.random.default_rng(3)
+    views = []
+    for r in range(4):
+        for c in range(4):
+            d = np.array([0.0, 1.0, 0.0]) + rng.normal(0, 0.02, 3)
+            views.append(_look([10.0 * c, -50.0, 10.0 * r], d, f"{r}{c}.png", len(views) + 1))
+    got = band_pairs(views, _all_pairs(16))
+    step = [np.linalg.norm(views[i].center - views[j].center) for i, j in got]
+    assert {v for p in got for v in p} == set(range(16)) and max(step) <= 10.0 * np.sqrt(2) + 1e-9
+    # a rig: cameras 0 and 1 at the origin, back to back; camera 2 beside 0, looking its way
+    rig = [_look([0, 0, 0], [0, 0, 1], "a.png", 1), _look([0, 0, 0], [0, 0, -1], "b.png", 2),
+           _look([0.5, 0, 0], [0, 0, 1], "c.png", 3), _look([0.5, 0, 0], [0, 0, -1], "d.png", 4)]
+    assert band_pairs(rig, _all_pairs(4)) == [(0, 2), (1, 3)]
+
+
+def test_band_pairs_edge_cases():
+    views = [_look([k, 0, 0], [0, 0, 1], f"{k}.png", k + 1) for k in range(5)]
+    assert band_pairs(views, []) == [] and band_pairs(views, _all_pairs(5), n=0) == []
+    assert band_pairs(views, [(3, 4)]) == [(3, 4)]
+    assert band_pairs(views, [(0, 4), (1, 2)]) == [(0, 4), (1, 2)]  # every image of the list, whatever the rank
+
+
+def test_query_rows_are_a_uniform_seeded_sample():
+    """Sorted, distinct, the same on every call, all rows when there are few; uniform: over 10 000 rows
+    with 2 000 taken, each tenth of the rows holds close to its 200 (a spread sample would not: it
+    follows the image, not the rows)."""
+    assert query_rows(0, 5).tolist() == [] and query_rows(3, 5).tolist() == [0, 1, 2]
+    r = query_rows(10_000, 2_000)
+    assert len(r) == 2_000 == len(np.unique(r)) and np.all(np.diff(r) > 0) and r.dtype.kind == "i"
+    assert np.array_equal(r, query_rows(10_000, 2_000)) and 0 <= r.min() and r.max() < 10_000
+    counts = np.bincount(r // 1_000, minlength=10)
+    assert np.all(np.abs(counts - 200) < 60), counts
