@@ -11,7 +11,7 @@ pycolmap = pytest.importorskip("pycolmap")
 
 from episeg_cv import AutoTol, SearchConfig, colmap, scenes  # noqa: E402
 from episeg_cv.colmap import TrackConsensus  # noqa: E402
-from episeg_cv.colmap.band import TAU_MIN, band_pairs, query_rows, sample_pairs  # noqa: E402
+from episeg_cv.colmap.band import TAU_MIN, band_pairs, sample_pairs  # noqa: E402
 
 pycolmap.logging.minloglevel = 2
 
@@ -121,7 +121,7 @@ def test_cli_tol_auto(folder, tmp_path):
     assert r.returncode == 2 and "--tol" in r.stderr and "'auto'" in r.stderr
 
 
-def test_the_band_uses_a_subset_of_queries(folder, tmp_path, monkeypatch):
+def test_the_band_uses_a_spread_subset_of_queries(folder, tmp_path, monkeypatch):
     """At most MAX_QUERIES queries a pair: the wide pass on every keypoint cost more than the matching."""
     from episeg_cv.colmap import band as band_module
 
@@ -158,12 +158,13 @@ def test_large_sample_pairs_give_the_matches_of_guided_match(folder, tmp_path, m
     arrays, not a copy)."""
     from episeg_cv.colmap import band as band_module
     from episeg_cv.matching import guided
+    from episeg_cv.refinement import spread_subset
 
     def stage_by_stage(task):
         out = []
         for k, view1, view2, store, wide, strict in task:
             inputs, g, _, _ = band_module.pair_inputs(view1, view2, store)
-            inputs = band_module._queries(inputs, query_rows(len(inputs.points1), band_module.MAX_QUERIES))
+            inputs = band_module._queries(inputs, spread_subset(inputs.points1, band_module.MAX_QUERIES))
             conf = guided.match(inputs, g, wide, strict)[0]
             out.append((k, band_module._residuals(g, inputs.points1[conf[:, 0]], inputs.points2[conf[:, 1]])))
         return out
@@ -236,15 +237,3 @@ def test_band_pairs_edge_cases():
     assert band_pairs(views, []) == [] and band_pairs(views, _all_pairs(5), n=0) == []
     assert band_pairs(views, [(3, 4)]) == [(3, 4)]
     assert band_pairs(views, [(0, 4), (1, 2)]) == [(0, 4), (1, 2)]  # every image of the list, whatever the rank
-
-
-def test_query_rows_are_a_uniform_seeded_sample():
-    """Sorted, distinct, the same on every call, all rows when there are few; uniform: over 10 000 rows
-    with 2 000 taken, each tenth of the rows holds close to its 200 (a spread sample would not: it
-    follows the image, not the rows)."""
-    assert query_rows(0, 5).tolist() == [] and query_rows(3, 5).tolist() == [0, 1, 2]
-    r = query_rows(10_000, 2_000)
-    assert len(r) == 2_000 == len(np.unique(r)) and np.all(np.diff(r) > 0) and r.dtype.kind == "i"
-    assert np.array_equal(r, query_rows(10_000, 2_000)) and 0 <= r.min() and r.max() < 10_000
-    counts = np.bincount(r // 1_000, minlength=10)
-    assert np.all(np.abs(counts - 200) < 60), counts
