@@ -35,7 +35,7 @@ number for the collection, from steps 1 and 4 of that estimate:
    its track, an error of the keypoints' and poses' noise. On the synthetic
    rooms (sigma 0.1 px) this tolerance of 1 px instead of 2 px kept 0.5 % fewer
    accurate 3D points and dropped 30 % of the inaccurate ones; on the real
-   dinoSparseRing (sigma 0.8 px) it is the band itself. With the fallback, the band.
+   dinoSparseRing (sigma 0.7 px) it is the band itself. With the fallback, the band.
 
 What the band buys is measured in ``benchmarks/colmap.py``: poses that are
 exact (the synthetic rooms) give the fixed default's 2 px; a real calibration
