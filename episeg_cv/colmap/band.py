@@ -8,10 +8,10 @@ number for the collection, from steps 1 and 4 of that estimate:
 
 1. **Confident matches** of the pairs :func:`band_pairs` picks from the pair
    list: those whose cameras most likely see the same part of the scene,
-   until every image is in one of them (at most :data:`SAMPLE_PAIRS`). Guided matching around the given poses in the
-   wide band (``AutoTol.band``; 64 px at 640 x 480), with the strict rule
-   (mutual, ratio below ``AutoTol.strict_ratio``), each view's depth range
-   applied; per pair at most :data:`MAX_QUERIES` keypoints of the first image,
+   until every image is in one of them (at most :data:`SAMPLE_PAIRS`). Guided
+   matching around the given poses in the wide band (``AutoTol.band``; 64 px
+   at 640 x 480), with the strict rule (mutual, ratio below
+   ``AutoTol.strict_ratio``), each view's depth range applied; per pair at most :data:`MAX_QUERIES` keypoints of the first image,
    spread over it, against every keypoint of the second (the wide band on 8k
    keypoints cost more than the matching of the whole collection). A uniform
    sample instead was measured and rejected: the spread one gives an image's
@@ -136,7 +136,7 @@ def band_pairs(views, pair_list, n: int = SAMPLE_PAIRS) -> list:
     --------
     Six cameras on a ring, all looking at its centre: neighbours, until each image is in one.
 
-    >>> from episeg_cv.colmap import View
+    >>> from episeg_cv.colmap import View, exhaustive_pairs
     >>> def ring(k, n=6):
     ...     a = 2 * np.pi * k / n
     ...     z = -np.array([np.cos(a), 0.0, np.sin(a)])  # the optical axis, towards the centre
@@ -144,7 +144,7 @@ def band_pairs(views, pair_list, n: int = SAMPLE_PAIRS) -> list:
     ...     R = np.stack([x, np.cross(z, x), z])
     ...     return View(f"{k}.png", k + 1, 1, np.diag([500.0, 500.0, 1.0]), R, R @ (3 * z), (640, 480))
     >>> views = [ring(k) for k in range(6)]
-    >>> got = band_pairs(views, [(i, j) for i in range(6) for j in range(i + 1, 6)])
+    >>> got = band_pairs(views, exhaustive_pairs(6))
     >>> all((j - i) % 6 in (1, 5) for i, j in got), sorted({v for p in got for v in p})
     (True, [0, 1, 2, 3, 4, 5])
     """
