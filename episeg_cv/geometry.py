@@ -102,6 +102,11 @@ def point_segment_distance(p: np.ndarray, start: np.ndarray, end: np.ndarray) ->
     return np.hypot(*(p - start - u[:, None] * d).T)
 
 
+def _segment_distance(p: np.ndarray, start: np.ndarray, end: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """:meth:`EpipolarSegments.distance` of checked ``(N, 2)`` float64 points: inf where not ``valid``."""
+    return np.where(valid, point_segment_distance(p, np.nan_to_num(start), np.nan_to_num(end)), np.inf)
+
+
 @dataclass(frozen=True, eq=False)
 class EpipolarSegments:
     """The visible epipolar segments in image 2 of ``N`` points of image 1.
@@ -220,8 +225,7 @@ class EpipolarSegments:
         (N,) float64
             Euclidean distance in pixels; ``inf`` where the segment is empty.
         """
-        p = self._paired_points(points2)
-        return np.where(self.valid, point_segment_distance(p, np.nan_to_num(self.start), np.nan_to_num(self.end)), np.inf)
+        return _segment_distance(self._paired_points(points2), self.start, self.end, self.valid)
 
     def line_distance(self, points2) -> np.ndarray:
         """(N,) pixel distance from ``points2[i]`` to epipolar line ``i``; inf where undefined."""
@@ -573,19 +577,28 @@ class TwoViewGeometry(EpipolarGeometry):
         bit: ``tests/core/test_segment_kernel.py``).
         """
         x1 = np.ascontiguousarray(as_points(points1, "points1"))
-        n = x1.shape[0]
-        zmin, zmax = as_depth_range(depth_range, n)
+        zmin, zmax = as_depth_range(depth_range, x1.shape[0])
         margin = as_nonnegative(margin, "margin")
         zmin = np.ascontiguousarray(np.atleast_1d(zmin), dtype=np.float64)
         zmax = np.ascontiguousarray(np.atleast_1d(zmax), dtype=np.float64)
         rect = _rect(self.image_size2, margin)
+        # (called on a FundamentalGeometry too, which has the operators but not this class's methods)
+        start, end, valid, line, p_inf, a = TwoViewGeometry._segment_arrays(self, x1, zmin, zmax, rect)
+        return EpipolarSegments(start, end, valid, line, p_inf, self.epipole, margin, a,
+                                self.epipole_homogeneous.copy(), rect)
+
+    def _segment_arrays(self, x1: np.ndarray, zmin: np.ndarray, zmax: np.ndarray, rect: np.ndarray) -> tuple:
+        """The arrays of :meth:`segments` on checked inputs, as the kernel gives them (writable, no
+        :class:`EpipolarSegments`): ``(start, end, valid, line, p_inf, a)``. ``x1 (N, 2)`` C-contiguous
+        float64, ``zmin`` / ``zmax`` ``(1,)`` or ``(N,)`` float64, ``rect`` from ``_rect``."""
+        n = x1.shape[0]
         H, b = np.ascontiguousarray(self.infinity_homography), self.epipole_homogeneous
         # numpy allocates the outputs: its large arrays get huge pages (numba's would fault page by page)
         start, end, p_inf = np.empty((n, 2)), np.empty((n, 2)), np.empty((n, 2))
         valid, line, a = np.empty(n, dtype=np.bool_), np.empty((n, 3)), np.empty((n, 3))
         threads.run(_gk.segments, _gk.segments_parallel, n, x1, H, b, zmin, zmax, rect, CHEIRALITY_EPS,
                     start, end, valid, line, p_inf, a)
-        return EpipolarSegments(start, end, valid, line, p_inf, self.epipole, margin, a, b.copy(), rect)
+        return start, end, valid, line, p_inf, a
 
 
 def as_geometry(geometry, name: str = "geometry") -> EpipolarGeometry:

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ._validation import as_points
-from .geometry import TwoViewGeometry, as_calibrated
+from .geometry import TwoViewGeometry, _rect, _segment_distance, as_calibrated
 
 __all__ = ["PoseRefinement", "refine_pose", "segment_residuals", "robust_sigma", "spread_subset", "rotation_angle_deg"]
 
@@ -38,6 +38,8 @@ __all__ = ["PoseRefinement", "refine_pose", "segment_residuals", "robust_sigma",
 RESIDUAL_MARGIN = 1e3
 #: Residual added for a match whose segment is empty (the ray is behind camera 2).
 EMPTY_PENALTY = 1e3
+#: The depth range of :func:`segment_residuals`: cheirality only, ``(zmin, zmax)`` as the segment kernel takes it.
+_NO_BOUND = (np.zeros(1), np.full(1, np.inf))
 #: Smallest noise scale (pixels) the residuals are weighed with against the prior (keypoints are not
 #: located better than a tenth of a pixel).
 MIN_SIGMA = 0.1
@@ -138,10 +140,17 @@ def segment_residuals(geometry: TwoViewGeometry, points1: np.ndarray, points2: n
     ``sign(line distance) * max(distance to the segment, |line distance|)``; where the segment
     is empty, ``|line distance| + EMPTY_PENALTY``; a large finite value where the line is undefined.
     """
-    seg = geometry.segments(points1, margin=RESIDUAL_MARGIN)
+    if isinstance(geometry, TwoViewGeometry):  # the segments' arrays without the public checks (checked inputs)
+        x1 = np.ascontiguousarray(points1, dtype=np.float64)
+        start, end, valid, line, _, _ = geometry._segment_arrays(x1, _NO_BOUND[0], _NO_BOUND[1],
+                                                                 _rect(geometry.image_size2, RESIDUAL_MARGIN))
+    else:
+        seg = geometry.segments(points1, margin=RESIDUAL_MARGIN)
+        start, end, valid, line = seg.start, seg.end, seg.valid, seg.line
+    points2 = np.ascontiguousarray(points2, dtype=np.float64)
     with np.errstate(invalid="ignore"):
-        ld = (seg.line[:, :2] * points2).sum(axis=1) + seg.line[:, 2]
-    sd = seg.distance(points2)
+        ld = (line[:, :2] * points2).sum(axis=1) + line[:, 2]
+    sd = _segment_distance(points2, start, end, valid)
     sd = np.where(np.isfinite(sd), sd, np.abs(ld) + EMPTY_PENALTY)
     out = np.where(ld < 0, -1.0, 1.0) * np.maximum(sd, np.abs(ld))
     # t = 0 (no line): the distance to the single point p_inf; undefined line elsewhere: a large residual

@@ -53,7 +53,7 @@ from ..matching.auto import clip_tol, strict_rule
 from ..matching.config import AcceptRule, AutoTol, SearchConfig
 from ..matching.distances import Distances
 from ..refinement import robust_sigma, segment_residuals, spread_subset
-from .job import image_rows, pair_inputs, pinhole_count
+from .job import image_rows, pair_inputs
 from .store import FeatureStore
 
 __all__ = ["CollectionBand", "collection_band", "band_pairs", "SAMPLE_PAIRS", "TAU_MIN", "MAX_QUERIES"]
@@ -199,17 +199,14 @@ def collection_band(views, store: FeatureStore, pair_list, search: SearchConfig,
     strict = strict_rule(options, rule)
     largest = max((v.image_size for v in views), key=lambda s: s[0] * s[1])
     small_ones, large_ones = [], []  # (sample number, queries, keypoints, geometry, wide search, view 2's range)
-    counts, rows, queries = {}, {}, {}  # per image: keypoints, (points, scoring rows), those of its spread queries
+    rows, queries = {}, {}  # per image: (points, scoring rows) of its keypoints with a pinhole position, its queries
     for k, (i, j) in enumerate(band_pairs(views, pair_list, sample)):
         wide = search.replace(tol=options.first_band(views[j].image_size), depth_range=views[i].depth_range)
         for v in (i, j):
-            if v not in counts:
-                counts[v] = pinhole_count(views[v], store)
+            if v not in rows:
+                rows[v] = image_rows(views[v], store)[:2]
         # (a View's geometry has no covariance)
-        if small.fits(min(counts[i], MAX_QUERIES), counts[j], wide, strict):
-            for v in (i, j):
-                if v not in rows:
-                    rows[v] = image_rows(views[v], store)[:2]
+        if small.fits(min(len(rows[i][0]), MAX_QUERIES), len(rows[j][0]), wide, strict):
             if i not in queries:  # (shared by its pairs: many() passes an image's arrays once)
                 q = spread_subset(rows[i][0], MAX_QUERIES)
                 queries[i] = rows[i] if len(q) == len(rows[i][0]) else (rows[i][0][q], rows[i][1][q])

@@ -6,12 +6,12 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from episeg_cv import (AutoTol, CandidateIndex, SearchConfig, SegmentMatcher, TwoViewGeometry, estimate_band,
+from episeg_cv import (AutoTol, CandidateIndex, FundamentalGeometry, SearchConfig, SegmentMatcher, TwoViewGeometry, estimate_band,
                        filter_pairs, guided_matches, knn_descriptors, match_descriptors, radius_descriptors,
                        refine_pose, scenes)
 from episeg_cv.matching.auto import unguided_mutual
 from episeg_cv.matching.distances import Distances
-from episeg_cv.refinement import robust_sigma, segment_residuals, spread_subset
+from episeg_cv.refinement import EMPTY_PENALTY, RESIDUAL_MARGIN, robust_sigma, segment_residuals, spread_subset
 
 K = np.array([[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]])
 SIZE = dict(image_size1=(640, 480), image_size2=(640, 480))
@@ -102,6 +102,36 @@ def test_segment_residual_is_the_distance_to_the_segment():
     r = segment_residuals(g, x1, x2)
     np.testing.assert_allclose(np.abs(r), [3.0, 30.0, 5.0], atol=1e-9)
     assert np.sign(r[0]) == -np.sign(r[2])  # opposite sides of the line
+
+
+def _residuals_by_definition(g, x1, x2):
+    """segment_residuals written with the public API only (its docstring's definition)."""
+    seg = g.segments(x1, margin=RESIDUAL_MARGIN)
+    with np.errstate(invalid="ignore"):
+        ld = (seg.line[:, :2] * x2).sum(axis=1) + seg.line[:, 2]
+    sd = seg.distance(x2)
+    sd = np.where(np.isfinite(sd), sd, np.abs(ld) + EMPTY_PENALTY)
+    out = np.where(ld < 0, -1.0, 1.0) * np.maximum(sd, np.abs(ld))
+    return np.where(np.isfinite(out), out, np.where(np.isfinite(sd), sd, EMPTY_PENALTY))
+
+
+@pytest.mark.parametrize("pose", ["forward", "lateral", "backward", "face_to_face", "near_pure_rotation",
+                                  "partial_behind"])
+def test_segment_residuals_are_their_definition_to_the_bit(pose):
+    """Property: the kernel path of segment_residuals (no public checks, no EpipolarSegments) gives the
+    bits of the definition through segments() and distance(), empty segments and off-image points
+    included; the same for an oriented F and for t = 0."""
+    rng = np.random.default_rng(3)
+    x1, x2 = rng.uniform(-80, 720, (400, 2)), rng.uniform(-80, 720, (400, 2))
+    g = scenes.make_pair(pose, image_size=(640, 480)).geometry
+    got = segment_residuals(g, x1, x2)
+    assert got.dtype == np.float64 and got.shape == (400,)
+    np.testing.assert_array_equal(got, _residuals_by_definition(g, x1, x2))
+    assert segment_residuals(g, x1[:0], x2[:0]).shape == (0,)
+    f = FundamentalGeometry(g.fundamental_matrix, image_size1=g.image_size1, image_size2=g.image_size2)
+    np.testing.assert_array_equal(segment_residuals(f, x1, x2), _residuals_by_definition(f, x1, x2))
+    still = TwoViewGeometry(K, K, np.eye(3), [0, 0, 0], **SIZE)  # pure rotation: the segment is one point
+    np.testing.assert_array_equal(segment_residuals(still, x1, x2), _residuals_by_definition(still, x1, x2))
 
 
 def test_robust_sigma_and_spread_subset():
