@@ -30,6 +30,7 @@ import concurrent.futures as cf
 import logging
 import os
 
+from ..interrupts import interrupts_deferred
 from ..threads import available_cores, limit_this_thread, limited
 from .worker import single_thread
 
@@ -44,6 +45,8 @@ TASKS_PER_WORKER = 4
 #: about 250 keypoints) 2 threads took 0.054 s with 8 pairs a task, 0.049 s with 16 and 0.045 s with 32;
 #: on the 24-view room (276 pairs of about 4500 keypoints) 8, 16 and 32 gave the same pairs/s (280-290).
 PROCESS_CHUNK, THREAD_CHUNK = 64, 32
+#: Seconds of one wait for the pool's next result: how long an interrupt may wait to be delivered.
+WAIT_SLICE = 0.1
 #: Bounds on the pairs of one Dask task.
 DASK_CHUNK_MIN, DASK_CHUNK_MAX = 8, 64
 
@@ -171,19 +174,30 @@ class Runner:
         yield from self._threads(fn, items)
 
     def _threads(self, fn, items):
-        """``fn(item)`` for each item on the pool of threads, at most :attr:`window` in flight."""
+        """``fn(item)`` for each item on the pool of threads, at most :attr:`window` in flight.
+
+        The waits hold Ctrl-C and SIGTERM (:func:`~episeg_cv.interrupts.interrupts_deferred`) and last at
+        most :data:`WAIT_SLICE` seconds, so an interrupt lands between them: raised inside ``cf.wait``, it
+        could leave a pending future's lock taken (``cf.wait`` takes every future's lock in turn), and the
+        worker that then starts that future waited for it for ever, and so did the pool's shutdown (a
+        SIGTERM test hung in a clean-clone CI run).
+        """
         pending = {self._pool.submit(fn, it) for _, it in zip(range(self.window), items)}
         try:
             while pending:
-                finished, pending = cf.wait(pending, return_when=cf.FIRST_COMPLETED)
+                with interrupts_deferred():
+                    finished, pending = cf.wait(pending, timeout=WAIT_SLICE, return_when=cf.FIRST_COMPLETED)
                 for fut in finished:
-                    yield fut.result()
+                    with interrupts_deferred():
+                        res = fut.result()
+                    yield res
                     nxt = next(items, None)
                     if nxt is not None:
                         pending.add(self._pool.submit(fn, nxt))
         finally:
-            for fut in pending:
-                fut.cancel()
+            with interrupts_deferred():
+                for fut in pending:
+                    fut.cancel()
 
     def imap_here(self, fn, items):
         """``fn(item)`` for each item in this process: on a pool of :attr:`cores` threads when ``cores > 1``
