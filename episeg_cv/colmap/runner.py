@@ -187,10 +187,8 @@ class Runner:
             while pending:
                 with interrupts_deferred():
                     finished, pending = cf.wait(pending, timeout=WAIT_SLICE, return_when=cf.FIRST_COMPLETED)
-                for fut in finished:
-                    with interrupts_deferred():
-                        res = fut.result()
-                    yield res
+                for fut in finished:  # (a finished future's lock no worker takes again)
+                    yield fut.result()
                     nxt = next(items, None)
                     if nxt is not None:
                         pending.add(self._pool.submit(fn, nxt))
