@@ -120,9 +120,8 @@ def _residuals_by_definition(g, x1, x2):
 def test_segment_residuals_are_their_definition_to_the_bit(pose):
     """Property: the kernel path of segment_residuals (no public checks, no EpipolarSegments) gives the
     bits of the definition through segments() and distance(), empty segments and off-image points
-    included; the same for an oriented F and for t = 0."""
-    rng = np.random.default_rng(3)
-    x1, x2 = rng.uniform(-80, 720, (400, 2)), rng.uniform(-80, 720, (400, 2))
+    included; the same for the oriented F of each pose."""
+    x1, x2 = _random_points()
     g = scenes.make_pair(pose, image_size=(640, 480)).geometry
     got = segment_residuals(g, x1, x2)
     assert got.dtype == np.float64 and got.shape == (400,)
@@ -130,8 +129,18 @@ def test_segment_residuals_are_their_definition_to_the_bit(pose):
     assert segment_residuals(g, x1[:0], x2[:0]).shape == (0,)
     f = FundamentalGeometry(g.fundamental_matrix, image_size1=g.image_size1, image_size2=g.image_size2)
     np.testing.assert_array_equal(segment_residuals(f, x1, x2), _residuals_by_definition(f, x1, x2))
-    still = TwoViewGeometry(K, K, np.eye(3), [0, 0, 0], **SIZE)  # pure rotation: the segment is one point
+
+
+def test_segment_residuals_under_pure_rotation_are_their_definition_to_the_bit():
+    """Property: with t = 0 the segment is one point; the kernel path keeps the definition's bits."""
+    x1, x2 = _random_points()
+    still = TwoViewGeometry(K, K, np.eye(3), [0, 0, 0], **SIZE)
     np.testing.assert_array_equal(segment_residuals(still, x1, x2), _residuals_by_definition(still, x1, x2))
+
+
+def _random_points(n=400, seed=3):
+    rng = np.random.default_rng(seed)
+    return rng.uniform(-80, 720, (n, 2)), rng.uniform(-80, 720, (n, 2))
 
 
 def test_robust_sigma_and_spread_subset():
