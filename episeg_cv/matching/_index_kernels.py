@@ -343,34 +343,62 @@ def _prefix(first):
     return acc
 
 
+#: Sort cells per bucket, per entry of the bucket on average (:func:`_by_cell`).
+CELLS_PER_ENTRY = 1
+#: Largest cell sorted by insertion (:func:`_sort_cells`); larger ones (keys bunched in one place) by merge sort.
+INSERTION_MAX = 32
+
+
 @nb.njit(cache=True, nogil=True)
-def _by_bucket(first, bucket, key, n_b):
-    """Counting sort of the entries (keypoint-major) by bucket, stable: ``(t_b, key_b, bstart)``."""
+def _by_cell(first, bucket, key, n_b):
+    """Counting sort of the entries (keypoint-major) by bucket, then by the cell of their key in the bucket,
+    stable: ``(t_c, key_c, cstart, per)``, cell ``c`` (of bucket ``c // per``) being ``cstart[c]:cstart[c + 1]``.
+
+    A key ``b + f`` of bucket ``b`` goes to cell ``b per + floor(f per)`` (clamped to the bucket's cells): a
+    non-decreasing function of the key within the bucket, so sorting each cell by key (stably,
+    :func:`_sort_cells`) sorts the bucket as a stable sort by key would. ``per`` gives about
+    ``CELLS_PER_ENTRY`` cells per entry of a bucket."""
     total = bucket.shape[0]
-    bstart = np.zeros(n_b + 1, dtype=np.int64)
+    per = max(1, (CELLS_PER_ENTRY * total) // max(n_b, 1))
+    cstart = np.zeros(n_b * per + 1, dtype=np.int64)
+    cell = np.empty(total, dtype=np.int64)
     for m in range(total):
-        bstart[bucket[m] + 1] += 1
-    for b in range(n_b):
-        bstart[b + 1] += bstart[b]
-    pos = bstart[:-1].copy()
-    t_b = np.empty(total, dtype=np.int64)
-    key_b = np.empty(total)
+        b = bucket[m]
+        f = (key[m] - b) * per
+        c = b * per + (0 if f < 0 else (per - 1 if f >= per - 1 else int(f)))
+        cell[m] = c
+        cstart[c + 1] += 1
+    for c in range(n_b * per):
+        cstart[c + 1] += cstart[c]
+    pos = cstart[:-1].copy()
+    t_c = np.empty(total, dtype=np.int64)
+    key_c = np.empty(total)
     n = first.shape[0] - 1
     for k in range(n):
         for m in range(first[k], first[k + 1]):
-            p = pos[bucket[m]]
-            t_b[p], key_b[p] = k, key[m]
-            pos[bucket[m]] = p + 1
-    return t_b, key_b, bstart
+            p = pos[cell[m]]
+            t_c[p], key_c[p] = k, key[m]
+            pos[cell[m]] = p + 1
+    return t_c, key_c, cstart, per
 
 
 @nb.njit(cache=True, nogil=True)
-def _sort_bucket(b, bstart, t_b, key_b, t_sorted, key_sorted):
-    a, z = bstart[b], bstart[b + 1]
-    o = np.argsort(key_b[a:z], kind="mergesort")  # stable: equal keys by keypoint index
-    for m in range(z - a):
-        t_sorted[a + m] = t_b[a + o[m]]
-        key_sorted[a + m] = key_b[a + o[m]]
+def _sort_cells(c0, c1, cstart, t_c, key_c):
+    """In place: cells ``c0:c1`` each sorted by key, stably (equal keys keep their keypoint order)."""
+    for c in range(c0, c1):
+        a, z = cstart[c], cstart[c + 1]
+        if z - a <= INSERTION_MAX:
+            for m in range(a + 1, z):
+                kk, tt = key_c[m], t_c[m]
+                r = m
+                while r > a and key_c[r - 1] > kk:
+                    key_c[r], t_c[r] = key_c[r - 1], t_c[r - 1]
+                    r -= 1
+                key_c[r], t_c[r] = kk, tt
+        else:
+            o = np.argsort(key_c[a:z], kind="mergesort")
+            ks, ts = key_c[a:z][o], t_c[a:z][o]
+            key_c[a:z], t_c[a:z] = ks, ts
 
 
 @nb.njit(cache=True, nogil=True)
@@ -388,11 +416,9 @@ def spread_keys(lo, width, edges, y, directions, c0, c1, span, hull):
     first[n] = total
     bucket, key = np.empty(total, np.int64), np.empty(total)
     _spread(np.int64(0), n, ranges, y, directions, c0, c1, span, hull, first, bucket, key, False)
-    t_b, key_b, bstart = _by_bucket(first, bucket, key, edges.shape[0] - 1)
-    t_sorted, key_sorted = np.empty(total, np.int64), np.empty(total)
-    for b in range(edges.shape[0] - 1):
-        _sort_bucket(np.int64(b), bstart, t_b, key_b, t_sorted, key_sorted)
-    return t_sorted, key_sorted, bstart
+    t_sorted, key_sorted, cstart, per = _by_cell(first, bucket, key, edges.shape[0] - 1)
+    _sort_cells(np.int64(0), cstart.shape[0] - 1, cstart, t_sorted, key_sorted)
+    return t_sorted, key_sorted, cstart[::per].copy()
 
 
 @nb.njit(cache=True, nogil=True, parallel=True)
@@ -413,11 +439,12 @@ def spread_keys_parallel(lo, width, edges, y, directions, c0, c1, span, hull, bl
     for c in prange(nblk):
         k0, k1 = _blocks(n, nblk, c)
         _spread(k0, k1, ranges, y, directions, c0, c1, span, hull, first, bucket, key, False)
-    t_b, key_b, bstart = _by_bucket(first, bucket, key, edges.shape[0] - 1)
-    t_sorted, key_sorted = np.empty(total, np.int64), np.empty(total)
-    for b in prange(edges.shape[0] - 1):
-        _sort_bucket(np.int64(b), bstart, t_b, key_b, t_sorted, key_sorted)
-    return t_sorted, key_sorted, bstart
+    t_sorted, key_sorted, cstart, per = _by_cell(first, bucket, key, edges.shape[0] - 1)
+    cells = cstart.shape[0] - 1
+    for c in prange(nblk):
+        a, z = _blocks(cells, nblk, c)
+        _sort_cells(a, z, cstart, t_sorted, key_sorted)
+    return t_sorted, key_sorted, cstart[::per].copy()
 
 
 # -- per query row -----------------------------------------------------------------------------------
