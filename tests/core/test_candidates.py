@@ -341,6 +341,37 @@ def test_bucket_ranges_are_searchsorted(n_b):
     np.testing.assert_array_equal(got, _reference_ranges(lo, width, edges))
 
 
+@pytest.mark.parametrize("n_b", [1, 3, 40])
+def test_bucket_sort_is_a_stable_sort_by_bucket_then_key(n_b):
+    """The index's counting sort by (bucket, cell) and its per-cell sorts give a stable sort of the entries
+    by bucket, then key (ties in keypoint order): keys spread out, bunched into one cell (the merge-sort
+    branch), repeated, and at the ends of a bucket."""
+    from episeg_cv.matching._index_kernels import INSERTION_MAX, _by_cell, _sort_cells
+
+    rng = np.random.default_rng(n_b)
+    n = 6000
+    counts = rng.integers(0, 4, n)
+    first = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    total = int(first[-1])
+    bucket = rng.integers(0, n_b, total).astype(np.int64)
+    frac = rng.uniform(0, 1, total)
+    kind = rng.random(total)
+    frac[kind < 0.1] = rng.choice([0.0, 0.5, np.nextafter(1.0, 0)], (kind < 0.1).sum())  # repeated, the ends
+    bunched = kind > 0.7
+    frac[bunched] = 0.25 + rng.uniform(0, 1e-6, bunched.sum())
+    key = bucket + frac
+    t, k, cstart, per = _by_cell(first, bucket, key, n_b)
+    assert np.diff(cstart).max() > INSERTION_MAX  # both branches of _sort_cells run
+    cells = len(cstart) - 1
+    _sort_cells(0, cells // 3, cstart, t, k)  # in pieces, as the threads do
+    _sort_cells(cells // 3, cells, cstart, t, k)
+    owner = np.repeat(np.arange(n), counts)
+    o = np.lexsort((key, bucket))  # stable: ties keep the keypoint-major order
+    np.testing.assert_array_equal(t, owner[o])
+    np.testing.assert_array_equal(k, key[o])
+    np.testing.assert_array_equal(cstart[::per], np.searchsorted(bucket[o], np.arange(n_b + 1)))
+
+
 def test_slice_bounds_are_searchsorted():
     """Each query's slice: np.searchsorted of its key interval in its bucket's sorted keys."""
     from episeg_cv.matching._index_kernels import slice_bounds
